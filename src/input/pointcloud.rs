@@ -1,0 +1,243 @@
+//! Decoding of segmented `sensor_msgs/PointCloud2` clouds (contract section 1).
+//!
+//! Handles any field order, extra fields, padding in `point_step` and `row_step`, organised clouds
+//! (`height > 1`), NaN/Inf points (skipped), big-endian data, `x`/`y`/`z` as FLOAT32 or FLOAT64 and
+//! `label` as any integer datatype or a FLOAT32 holding an integer value.
+
+use crate::msgs::{PointCloud2, PointField};
+
+/// The labelled points of one cloud, in the cloud's `header.frame_id`.
+#[derive(Debug, Clone, Default)]
+pub struct LabeledPoints {
+    /// Point coordinates [m], in the cloud's frame; label-0 and non-finite points are dropped.
+    pub points: Vec<[f64; 3]>,
+    /// Part label of each point (>= 1).
+    pub labels: Vec<u32>,
+    /// Points skipped because a coordinate was NaN or infinite.
+    pub nonfinite: usize,
+    /// Points skipped because the label was not a non-negative integer (FLOAT32 labels only).
+    pub bad_labels: usize,
+}
+
+/// Why a cloud could not be decoded; the whole cloud is then skipped.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum CloudError {
+    #[error("field '{0}' missing")]
+    MissingField(&'static str),
+    #[error("field '{name}' has unsupported datatype {datatype} ({why})")]
+    UnsupportedDatatype { name: &'static str, datatype: u8, why: &'static str },
+    #[error("field '{name}' at offset {offset} (+{size} bytes) overruns point_step {point_step}")]
+    FieldOverrun { name: &'static str, offset: u32, size: u32, point_step: u32 },
+    #[error("row_step {row_step} < width {width} x point_step {point_step}")]
+    RowStepTooSmall { row_step: u32, width: u32, point_step: u32 },
+    #[error("data is {actual} bytes, shorter than the declared {declared} (height {height} x row_step {row_step})")]
+    DataTooShort { actual: usize, declared: u64, height: u32, row_step: u32 },
+}
+
+fn datatype_size(dt: u8) -> Option<u32> {
+    Some(match dt {
+        PointField::INT8 | PointField::UINT8 => 1,
+        PointField::INT16 | PointField::UINT16 => 2,
+        PointField::INT32 | PointField::UINT32 | PointField::FLOAT32 => 4,
+        PointField::FLOAT64 => 8,
+        _ => return None,
+    })
+}
+
+#[derive(Clone, Copy)]
+struct Field {
+    offset: usize,
+    datatype: u8,
+}
+
+fn find(cloud: &PointCloud2, name: &'static str) -> Result<Field, CloudError> {
+    let f = cloud.fields.iter().find(|f| f.name == name).ok_or(CloudError::MissingField(name))?;
+    let size = datatype_size(f.datatype).ok_or(CloudError::UnsupportedDatatype {
+        name,
+        datatype: f.datatype,
+        why: "not a PointField datatype",
+    })?;
+    if f.offset + size > cloud.point_step {
+        return Err(CloudError::FieldOverrun { name, offset: f.offset, size, point_step: cloud.point_step });
+    }
+    Ok(Field { offset: f.offset as usize, datatype: f.datatype })
+}
+
+#[inline]
+fn bytes<const N: usize>(b: &[u8], big: bool) -> [u8; N] {
+    let mut a = [0u8; N];
+    a.copy_from_slice(&b[..N]);
+    if big {
+        a.reverse();
+    }
+    a
+}
+
+/// Read a numeric field as f64 (little-endian bytes after `bytes` normalises the order).
+#[inline]
+fn read(p: &[u8], f: Field, big: bool) -> f64 {
+    let b = &p[f.offset..];
+    match f.datatype {
+        PointField::INT8 => b[0] as i8 as f64,
+        PointField::UINT8 => b[0] as f64,
+        PointField::INT16 => i16::from_le_bytes(bytes::<2>(b, big)) as f64,
+        PointField::UINT16 => u16::from_le_bytes(bytes::<2>(b, big)) as f64,
+        PointField::INT32 => i32::from_le_bytes(bytes::<4>(b, big)) as f64,
+        PointField::UINT32 => u32::from_le_bytes(bytes::<4>(b, big)) as f64,
+        PointField::FLOAT32 => f32::from_le_bytes(bytes::<4>(b, big)) as f64,
+        _ => f64::from_le_bytes(bytes::<8>(b, big)),
+    }
+}
+
+/// Decode the labelled points of a segmented cloud.
+///
+/// # Errors
+/// A [`CloudError`] when the cloud's layout is unusable: a missing `x`/`y`/`z`/`label` field, a
+/// coordinate that is not FLOAT32/FLOAT64, a label that is FLOAT64 (or not a PointField datatype), a
+/// field overrunning `point_step`, or `data` shorter than `height x row_step`.
+pub fn decode(cloud: &PointCloud2) -> Result<LabeledPoints, CloudError> {
+    let xyz = [find(cloud, "x")?, find(cloud, "y")?, find(cloud, "z")?];
+    for (f, name) in xyz.iter().zip(["x", "y", "z"]) {
+        if f.datatype != PointField::FLOAT32 && f.datatype != PointField::FLOAT64 {
+            return Err(CloudError::UnsupportedDatatype { name, datatype: f.datatype, why: "coordinates must be FLOAT32 or FLOAT64" });
+        }
+    }
+    let label_dt = cloud.fields.iter().find(|f| f.name == "label").map(|f| f.datatype);
+    if label_dt == Some(PointField::FLOAT64) {
+        return Err(CloudError::UnsupportedDatatype {
+            name: "label",
+            datatype: PointField::FLOAT64,
+            why: "labels must be an integer datatype or FLOAT32",
+        });
+    }
+    let label = find(cloud, "label")?;
+    let (w, h, step) = (cloud.width, cloud.height, cloud.point_step);
+    if (w as u64) * (step as u64) > cloud.row_step as u64 {
+        return Err(CloudError::RowStepTooSmall { row_step: cloud.row_step, width: w, point_step: step });
+    }
+    let declared = h as u64 * cloud.row_step as u64;
+    if (cloud.data.len() as u64) < declared {
+        return Err(CloudError::DataTooShort { actual: cloud.data.len(), declared, height: h, row_step: cloud.row_step });
+    }
+    let big = cloud.is_bigendian;
+    let float_label = label.datatype == PointField::FLOAT32;
+    let mut out = LabeledPoints::default();
+    out.points.reserve((w * h) as usize);
+    for r in 0..h as usize {
+        let row = &cloud.data[r * cloud.row_step as usize..];
+        for c in 0..w as usize {
+            let p = &row[c * step as usize..(c + 1) * step as usize];
+            let lv = read(p, label, big);
+            if float_label && (!lv.is_finite() || lv < 0.0 || lv.fract() != 0.0 || lv > u32::MAX as f64) {
+                out.bad_labels += 1;
+                continue;
+            }
+            if lv <= 0.0 {
+                continue; // label 0 is "no part"; negative integer labels are treated the same
+            }
+            let x = [read(p, xyz[0], big), read(p, xyz[1], big), read(p, xyz[2], big)];
+            if !x.iter().all(|v| v.is_finite()) {
+                out.nonfinite += 1;
+                continue;
+            }
+            out.points.push(x);
+            out.labels.push(lv as u32);
+        }
+    }
+    Ok(out)
+}
+
+/// Build a dense, unorganised little-endian cloud with FLOAT32 `x`, `y`, `z` and UINT32 `label`.
+/// Used by `bom import-tracks` and by tests.
+pub fn encode_xyzl(header: crate::msgs::Header, points: &[[f64; 3]], labels: &[u32]) -> PointCloud2 {
+    let mut data = Vec::with_capacity(points.len() * 16);
+    for (p, l) in points.iter().zip(labels) {
+        for v in p {
+            data.extend_from_slice(&(*v as f32).to_le_bytes());
+        }
+        data.extend_from_slice(&l.to_le_bytes());
+    }
+    let field = |name: &str, offset, datatype| PointField { name: name.into(), offset, datatype, count: 1 };
+    PointCloud2 {
+        header,
+        height: 1,
+        width: points.len() as u32,
+        fields: vec![
+            field("x", 0, PointField::FLOAT32),
+            field("y", 4, PointField::FLOAT32),
+            field("z", 8, PointField::FLOAT32),
+            field("label", 12, PointField::UINT32),
+        ],
+        is_bigendian: false,
+        point_step: 16,
+        row_step: 16 * points.len() as u32,
+        data,
+        is_dense: true,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::msgs::Header;
+
+    fn field(name: &str, offset: u32, datatype: u8) -> PointField {
+        PointField { name: name.into(), offset, datatype, count: 1 }
+    }
+
+    /// An organised 2x2 big-endian cloud, label first as INT16, FLOAT64 coordinates, padding in
+    /// point_step and row_step, one NaN point and one label-0 point.
+    #[test]
+    fn decodes_big_endian_organised_padded_cloud() {
+        let point_step = 2 + 6 + 24 + 4; // label, pad, xyz f64, trailing intensity
+        let row_step = 2 * point_step + 8;
+        let mut data = Vec::new();
+        let pts = [([1.0, 2.0, 3.0], 2i16), ([f64::NAN, 0.0, 0.0], 2), ([4.0, 5.0, 6.0], 0), ([7.0, 8.0, 9.0], 3)];
+        for row in pts.chunks(2) {
+            for (p, l) in row {
+                data.extend_from_slice(&l.to_be_bytes());
+                data.extend_from_slice(&[0u8; 6]);
+                for v in p {
+                    data.extend_from_slice(&v.to_be_bytes());
+                }
+                data.extend_from_slice(&1.5f32.to_be_bytes());
+            }
+            data.extend_from_slice(&[0u8; 8]);
+        }
+        let cloud = PointCloud2 {
+            header: Header::default(),
+            height: 2,
+            width: 2,
+            fields: vec![field("intensity", 32, 7), field("z", 24, 8), field("label", 0, 3), field("x", 8, 8), field("y", 16, 8)],
+            is_bigendian: true,
+            point_step,
+            row_step,
+            data,
+            is_dense: false,
+        };
+        let d = decode(&cloud).unwrap();
+        assert_eq!(d.points, vec![[1.0, 2.0, 3.0], [7.0, 8.0, 9.0]]);
+        assert_eq!(d.labels, vec![2, 3]);
+        assert_eq!(d.nonfinite, 1);
+    }
+
+    #[test]
+    fn float_labels_and_errors() {
+        let mut c = encode_xyzl(Header::default(), &[[1.0, 2.0, 3.0], [0.0, 0.0, 1.0]], &[1, 2]);
+        c.fields[3].datatype = PointField::FLOAT32;
+        c.data[12..16].copy_from_slice(&4.0f32.to_le_bytes());
+        c.data[28..32].copy_from_slice(&1.5f32.to_le_bytes());
+        let d = decode(&c).unwrap();
+        assert_eq!((d.labels.clone(), d.bad_labels), (vec![4], 1));
+
+        let mut short = c.clone();
+        short.data.truncate(20);
+        assert!(matches!(decode(&short), Err(CloudError::DataTooShort { .. })));
+        let mut f64_label = c.clone();
+        f64_label.fields[3].datatype = PointField::FLOAT64;
+        assert!(matches!(decode(&f64_label), Err(CloudError::UnsupportedDatatype { name: "label", .. })));
+        let mut no_label = c;
+        no_label.fields.pop();
+        assert_eq!(decode(&no_label).unwrap_err(), CloudError::MissingField("label"));
+    }
+}

@@ -1,0 +1,32 @@
+//! # bom — Bayesian Object Models for ROS 2
+//!
+//! bom turns segmented part point clouds (and, in dynamic mode, the wrench a robot applied)
+//! into a posterior over an articulated object's kinematic tree, joint types and screw axes:
+//! the Bayesian object models of Gothoskar et al. (CoRL 2022), fitted online by SVI.
+//!
+//! Data flows one way, one module per stage:
+//! [`input`] (bags, topics) -> [`perception`] (clouds to part centres and poses) -> [`windows`]
+//! -> [`model`] (priors, tree sampler, kinematics, likelihood) -> [`inference`] (SVI) ->
+//! [`output`] (summary table, JSON, ROS messages, bags). [`pipeline`] wires the stages for
+//! `bom replay`; [`import`] makes bags from articulation track logs.
+//!
+//! ```no_run
+//! use bom::{config::Config, pipeline};
+//! let cfg = Config::default();
+//! let run = pipeline::replay(&["bags/sturm_cabinet_one_001.mcap".into()], &cfg).unwrap();
+//! for j in &run.posterior.as_ref().unwrap().joints {
+//!     println!("part {}: {:?} p={:?}", j.child, j.map_type, j.type_probs);
+//! }
+//! ```
+
+pub mod config;
+pub mod diagnostics;
+pub mod import;
+pub mod inference;
+pub mod input;
+pub mod model;
+pub mod msgs;
+pub mod output;
+pub mod perception;
+pub mod pipeline;
+pub mod windows;

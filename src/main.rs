@@ -1,0 +1,133 @@
+//! The `bom` command line (contract section 4).
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+
+use bom::config::Config;
+use bom::model::JointType;
+use bom::{import, output, pipeline};
+
+#[derive(Parser)]
+#[command(name = "bom", version, about = "Bayesian Object Models for ROS 2: articulated-object posteriors from segmented clouds")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run the node's whole pipeline on recorded bags (several bags = several interactions with one object).
+    Replay {
+        #[arg(required = true)]
+        bags: Vec<PathBuf>,
+        /// Settings (YAML, or a ROS 2 parameters file with a `bom: ros__parameters:` section).
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Write the JSON summary here.
+        #[arg(long)]
+        json: Option<PathBuf>,
+        /// Write an MCAP bag of the output topics here.
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Print the wall time of every stage.
+        #[arg(long)]
+        timing: bool,
+    },
+    /// Convert articulation_models track logs into a bag.
+    ImportTracks {
+        #[arg(required = true)]
+        files: Vec<PathBuf>,
+        #[arg(long)]
+        out: PathBuf,
+        /// Known joint type, recorded as ground truth (rigid|fixed, prismatic, revolute).
+        #[arg(long, value_parser = parse_joint)]
+        joint: Option<JointType>,
+        /// Observation rate [Hz].
+        #[arg(long, default_value_t = 30.0)]
+        rate: f64,
+        /// Points per side of each synthesised patch.
+        #[arg(long, default_value_t = 4)]
+        grid: usize,
+    },
+}
+
+fn parse_joint(s: &str) -> Result<JointType, String> {
+    JointType::parse(s).ok_or_else(|| format!("unknown joint type '{s}' (rigid, fixed, prismatic, revolute)"))
+}
+
+const EXIT_ARGS: u8 = 2;
+const EXIT_INPUT: u8 = 3;
+
+fn main() -> ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_env("BOM_LOG").unwrap_or_else(|_| "info".into()))
+        .with_writer(std::io::stderr)
+        .with_target(false)
+        .without_time()
+        .init();
+    let cli = Cli::parse();
+    match cli.command {
+        Command::Replay { bags, config, json, out, timing } => {
+            let cfg = match config {
+                Some(path) => match Config::load(&path) {
+                    Ok(c) => c,
+                    Err(e) => {
+                        eprintln!("error: config {e}");
+                        return ExitCode::from(EXIT_ARGS);
+                    }
+                },
+                None => Config::new(),
+            };
+            let run = match pipeline::replay(&bags, &cfg) {
+                Ok(r) => r,
+                Err(e) => {
+                    eprintln!("error: {e}");
+                    return ExitCode::from(EXIT_INPUT);
+                }
+            };
+            print!("{}", output::table::render(&run));
+            if let Some(path) = json {
+                let text = serde_json::to_string_pretty(&output::json::summary(&run)).expect("summary serialises");
+                if let Err(e) = std::fs::write(&path, text + "\n") {
+                    eprintln!("error: {}: {e}", path.display());
+                    return ExitCode::from(EXIT_ARGS);
+                }
+            }
+            if let Some(path) = out {
+                if let Err(e) = pipeline::write_output_bag(&run, &path, &cfg) {
+                    eprintln!("error: {e}");
+                    return ExitCode::from(EXIT_ARGS);
+                }
+            }
+            if timing {
+                let t = &run.timing;
+                println!("timing [s]: read {:.3}  decode {:.3}  perception {:.3}  windows {:.3}  inference {:.3}  total {:.3}",
+                    t.read.as_secs_f64(), t.decode.as_secs_f64(), t.perception.as_secs_f64(), t.windows.as_secs_f64(),
+                    t.inference.as_secs_f64(), t.total.as_secs_f64());
+            }
+            ExitCode::SUCCESS
+        }
+        Command::ImportTracks { files, out, joint, rate, grid } => {
+            if !(rate.is_finite() && rate > 0.0) {
+                eprintln!("error: --rate must be a positive number of Hz, got {rate}");
+                return ExitCode::from(EXIT_ARGS);
+            }
+            match import::import_tracks(&files, &out, joint, rate, grid) {
+                Ok(n) => {
+                    eprintln!("wrote {} ({} frames, {} part(s))", out.display(), n, files.len());
+                    ExitCode::SUCCESS
+                }
+                Err(e @ import::ImportError::Write { .. }) => {
+                    eprintln!("error: {e}");
+                    ExitCode::from(EXIT_ARGS)
+                }
+                Err(e) => {
+                    eprintln!("error: {e}");
+                    ExitCode::from(EXIT_INPUT)
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,125 @@
+//! Revolute joint: the child rotates about an axis with unit direction `d` through point `p`.
+//!
+//! Standardised parameters after the common block of [`super::rigid`]:
+//! - `xi[4..7] = v ~ N(0, I)`, `d = v / |v|` (uniform prior over directions);
+//! - `xi[7..10]`: axis point `p = com0 + axis_point_sd_m * xi[7..10]` [m].
+//!
+//! Joint coordinate `q` [m]: path length of the centre of mass, so the rotation angle is
+//! `q / r` with `r = sqrt(dist(com, axis)^2 + min_radius_m^2)`. Measuring every movable joint in
+//! metres of centre-of-mass path makes the smoothness prior on coordinates the same statement for
+//! prismatic and revolute joints; otherwise its Occam factor (one per frame) would favour one type
+//! by the ratio of the units.
+
+use super::{c, normalize, rotation, Displacement, JointParams, ModelConfig, Real};
+use nalgebra::{Matrix3, Vector3};
+
+/// Number of standardised parameters of a revolute joint.
+pub const NUM_PARAMS: usize = super::rigid::NUM_PARAMS + 6;
+
+pub(super) fn decode<T: Real>(mut p: JointParams<T>, xi: &[T], com0: &Vector3<f64>, cfg: &ModelConfig) -> JointParams<T> {
+    let d = normalize(&Vector3::new(xi[0], xi[1], xi[2]));
+    let point = Vector3::new(
+        c::<T>(com0.x) + xi[3] * cfg.axis_point_sd_m,
+        c::<T>(com0.y) + xi[4] * cfg.axis_point_sd_m,
+        c::<T>(com0.z) + xi[5] * cfg.axis_point_sd_m,
+    );
+    let rel = p.com - point;
+    let perp = rel - d * rel.dot(&d);
+    p.radius = (perp.dot(&perp) + cfg.min_radius_m * cfg.min_radius_m).sqrt();
+    p.direction = d;
+    p.point = point;
+    p
+}
+
+pub(super) fn displacement<T: Real>(p: &JointParams<T>, q: T) -> Displacement<T> {
+    let r = rotation(&p.direction, q / p.radius);
+    Displacement { r, t: p.point - r * p.point }
+}
+
+/// Initial standardised axis parameters and path-length coordinates from a centre-of-mass track
+/// (fixed frame): the plane of the track by principal components, the circle in it by the
+/// algebraic (Kåsa) least-squares fit, clamped to 3 prior sd from `com0` when the track is nearly
+/// straight.
+pub fn init(track: &[Vector3<f64>], com0: &Vector3<f64>, cfg: &ModelConfig) -> ([f64; 6], Vec<f64>) {
+    let n = track.len().max(1) as f64;
+    let mean = track.iter().sum::<Vector3<f64>>() / n;
+    let cov = track.iter().map(|y| (y - mean) * (y - mean).transpose()).sum::<Matrix3<f64>>() / n;
+    let e = cov.symmetric_eigen();
+    let mut idx = [0usize, 1, 2];
+    idx.sort_by(|&a, &b| e.eigenvalues[b].total_cmp(&e.eigenvalues[a]));
+    let (u, w, normal) = (
+        e.eigenvectors.column(idx[0]).into_owned(),
+        e.eigenvectors.column(idx[1]).into_owned(),
+        e.eigenvectors.column(idx[2]).into_owned(),
+    );
+    // Kåsa fit: x^2 + y^2 = a x + b y + c in plane coordinates.
+    let mut ata = Matrix3::<f64>::zeros();
+    let mut atb = Vector3::<f64>::zeros();
+    for y in track {
+        let r = y - mean;
+        let (px, py) = (r.dot(&u), r.dot(&w));
+        let row = Vector3::new(px, py, 1.0);
+        ata += row * row.transpose();
+        atb += row * (px * px + py * py);
+    }
+    let max_off = 3.0 * cfg.axis_point_sd_m;
+    let centre = match ata.try_inverse() {
+        Some(inv) => {
+            let s = inv * atb;
+            mean + u * (s.x / 2.0) + w * (s.y / 2.0)
+        }
+        None => mean + w * max_off,
+    };
+    let mut off = centre - com0;
+    if !off.iter().all(|x| x.is_finite()) {
+        off = w * max_off;
+    }
+    if off.norm() > max_off {
+        off *= max_off / off.norm();
+    }
+    let point = com0 + off;
+    let d = normal;
+    let rel = com0 - point;
+    let perp = rel - d * rel.dot(&d);
+    let radius = (perp.norm_squared() + cfg.min_radius_m * cfg.min_radius_m).sqrt();
+    // Unwrapped angle of each sample around the axis, converted to path length.
+    let e1 = if perp.norm() > 1e-9 { perp / perp.norm() } else { u };
+    let e2 = d.cross(&e1);
+    let mut q = Vec::with_capacity(track.len());
+    let mut prev = 0.0f64;
+    for y in track {
+        let r = y - point;
+        let mut a = r.dot(&e2).atan2(r.dot(&e1));
+        while a - prev > std::f64::consts::PI {
+            a -= 2.0 * std::f64::consts::PI;
+        }
+        while a - prev < -std::f64::consts::PI {
+            a += 2.0 * std::f64::consts::PI;
+        }
+        prev = a;
+        q.push(a * radius);
+    }
+    let s = cfg.axis_point_sd_m;
+    ([3.0 * d.x, 3.0 * d.y, 3.0 * d.z, off.x / s, off.y / s, off.z / s], q)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn quarter_turn_moves_com_along_the_circle() {
+        let cfg = ModelConfig::default();
+        let com0 = Vector3::new(1.0, 0.0, 0.0);
+        // Axis z through the origin: p = com0 + 0.5 * xi => xi = (-2, 0, 0).
+        let xi = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 3.0, -2.0, 0.0, 0.0];
+        let p = super::super::decode(super::super::JointType::Revolute, &xi, &com0, &cfg);
+        let quarter = std::f64::consts::FRAC_PI_2 * p.radius;
+        let x = super::super::displacement(&p, quarter).apply(&p.com);
+        assert!((x - Vector3::new(0.0, 1.0, 0.0)).norm() < 1e-3, "{x}");
+        let track: Vec<Vector3<f64>> = (0..20).map(|i| { let a = 0.05 * i as f64; Vector3::new(a.cos(), a.sin(), 0.0) }).collect();
+        let (axis, q) = init(&track, &com0, &cfg);
+        assert!((axis[3] * cfg.axis_point_sd_m + 1.0).abs() < 1e-6);
+        assert!((q[19] - 0.95).abs() < 1e-3, "{}", q[19]);
+    }
+}

@@ -1,0 +1,55 @@
+//! The human summary printed by `bom replay`.
+
+use std::fmt::Write;
+
+use crate::pipeline::Run;
+
+/// A readable table of parts, windows and joints.
+pub fn render(run: &Run) -> String {
+    let mut s = String::new();
+    let _ = writeln!(s, "bom {} — {} mode, {} bag(s)", env!("CARGO_PKG_VERSION"), run.mode, run.bags.len());
+    for p in &run.parts {
+        let _ = writeln!(s, "  part {:>2}: {:>5} frames, {:>8.1} points/frame", p.label, p.frames, p.points_per_frame);
+    }
+    let _ = writeln!(s, "  windows: {}", run.windows.len());
+    for w in &run.windows {
+        let _ = writeln!(s, "    {:>9.3} s .. {:>9.3} s", w.start, w.end);
+    }
+    match &run.posterior {
+        None => {
+            let _ = writeln!(s, "  no posterior (no part observed inside a window)");
+        }
+        Some(p) => {
+            let _ = writeln!(s, "  posterior: ELBO {:.1} nats, {} iterations, {:.2} s", p.elbo, p.iterations, p.runtime_s);
+            let _ = writeln!(
+                s,
+                "  {:>5} {:>6} {:>7}  {:>6} {:>9} {:>8}  {:<24} {:>7}  {:<26} {:>8}",
+                "part", "parent", "P(par)", "rigid", "prismatic", "revolute", "axis direction", "sd[deg]", "axis point [m]", "sd[m]"
+            );
+            for j in &p.joints {
+                let ppar = j.parent_probs.iter().find(|(l, _)| *l == j.parent).map(|x| x.1).unwrap_or(f64::NAN);
+                let (dir, dsd, pt, psd) = match (&j.axis, j.map_type.movable()) {
+                    (Some(a), true) => (
+                        format!("[{:+.3}, {:+.3}, {:+.3}]", a.direction.x, a.direction.y, a.direction.z),
+                        format!("{:.2}", a.direction_sd_deg),
+                        a.point.map(|p| format!("[{:+.3}, {:+.3}, {:+.3}]", p.x, p.y, p.z)).unwrap_or("-".into()),
+                        if a.point_sd_m.is_finite() { format!("{:.4}", a.point_sd_m) } else { "-".into() },
+                    ),
+                    _ => ("-".into(), "-".into(), "-".into(), "-".into()),
+                };
+                let _ = writeln!(
+                    s,
+                    "  {:>5} {:>6} {:>7.3}  {:>6.3} {:>9.3} {:>8.3}  {:<24} {:>7}  {:<26} {:>8}   => {}",
+                    j.child, j.parent, ppar, j.type_probs[0], j.type_probs[1], j.type_probs[2], dir, dsd, pt, psd, j.map_type.name()
+                );
+            }
+        }
+    }
+    if run.diagnostics.total() > 0 {
+        let _ = writeln!(s, "  bad input (skipped, counted):");
+        for (k, n) in run.diagnostics.counts() {
+            let _ = writeln!(s, "    {n:>6} x {k}");
+        }
+    }
+    s
+}

@@ -1,0 +1,193 @@
+//! Windows stage: cut the recording into interaction windows (contract section 1).
+//!
+//! - **Dynamic mode** (wrenches recorded): a window opens when the applied force exceeds
+//!   `force_open_n` and closes once it has stayed below `force_close_n` (hysteresis) for `hold_s`;
+//!   `margin_before_s` / `margin_after_s` extend it (the part keeps moving after release).
+//! - **Kinematic mode** (no wrench): windows are periods of part motion. A part moves while the
+//!   speed of its centre of mass, measured over `speed_span_s`, exceeds `speed_open_mps`; the
+//!   period ends once the speed has stayed below `speed_close_mps` for `hold_s`. Periods of all
+//!   parts are joined, extended by the margins, and windows closer than `merge_gap_s` merged.
+//!
+//! Windows shorter than `min_duration_s` are dropped.
+
+use nalgebra::Point3;
+use serde::{Deserialize, Serialize};
+
+use crate::input::WrenchSample;
+use crate::perception::PartTracks;
+
+/// Window thresholds (`windows` section of the config).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(default)]
+pub struct WindowConfig {
+    pub force_open_n: f64,
+    pub force_close_n: f64,
+    pub speed_open_mps: f64,
+    pub speed_close_mps: f64,
+    pub speed_span_s: f64,
+    pub hold_s: f64,
+    pub margin_before_s: f64,
+    pub margin_after_s: f64,
+    pub merge_gap_s: f64,
+    pub min_duration_s: f64,
+}
+
+impl Default for WindowConfig {
+    fn default() -> Self {
+        WindowConfig {
+            force_open_n: 1.0,
+            force_close_n: 0.5,
+            speed_open_mps: 0.02,
+            speed_close_mps: 0.01,
+            speed_span_s: 0.2,
+            hold_s: 0.3,
+            margin_before_s: 0.3,
+            margin_after_s: 0.5,
+            merge_gap_s: 0.2,
+            min_duration_s: 0.2,
+        }
+    }
+}
+
+/// One interaction window [s, header stamps].
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Window {
+    pub start: f64,
+    pub end: f64,
+    /// The pushed part (dynamic mode), set by the caller from the contact point.
+    pub pushed_part: Option<u32>,
+}
+
+impl Window {
+    pub fn contains(&self, t: f64) -> bool {
+        t >= self.start && t <= self.end
+    }
+}
+
+/// Hysteresis thresholding of a signal `(t, value)`: intervals where it rose above `open` until it
+/// stayed below `close` for `hold` seconds.
+fn hysteresis(signal: &[(f64, f64)], open: f64, close: f64, hold: f64) -> Vec<(f64, f64)> {
+    let mut out = Vec::new();
+    let mut start: Option<f64> = None;
+    let mut below_since: Option<f64> = None;
+    for &(t, v) in signal {
+        match start {
+            None if v > open => {
+                start = Some(t);
+                below_since = None;
+            }
+            Some(s) => {
+                if v < close {
+                    let b = *below_since.get_or_insert(t);
+                    if t - b >= hold {
+                        out.push((s, b));
+                        start = None;
+                        below_since = None;
+                    }
+                } else {
+                    below_since = None;
+                }
+            }
+            None => {}
+        }
+    }
+    if let (Some(s), Some(&(t_end, _))) = (start, signal.last()) {
+        out.push((s, below_since.unwrap_or(t_end)));
+    }
+    out
+}
+
+/// Speed of a track of positions, measured over `span` seconds (central difference).
+fn speeds(track: &[(f64, Point3<f64>)], span: f64) -> Vec<(f64, f64)> {
+    let n = track.len();
+    let (mut lo, mut hi) = (0usize, 0usize);
+    let mut out = Vec::with_capacity(n);
+    for i in 0..n {
+        let t = track[i].0;
+        while track[lo].0 < t - span / 2.0 {
+            lo += 1;
+        }
+        while hi + 1 < n && track[hi + 1].0 <= t + span / 2.0 {
+            hi += 1;
+        }
+        let dt = track[hi].0 - track[lo].0;
+        let v = if dt > 0.0 { (track[hi].1 - track[lo].1).norm() / dt } else { 0.0 };
+        out.push((t, v));
+    }
+    out
+}
+
+fn finish(mut spans: Vec<(f64, f64)>, cfg: &WindowConfig, t_min: f64, t_max: f64) -> Vec<Window> {
+    spans.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let mut merged: Vec<(f64, f64)> = Vec::new();
+    for (s, e) in spans {
+        let (s, e) = ((s - cfg.margin_before_s).max(t_min), (e + cfg.margin_after_s).min(t_max));
+        match merged.last_mut() {
+            Some(last) if s <= last.1 + cfg.merge_gap_s => last.1 = last.1.max(e),
+            _ => merged.push((s, e)),
+        }
+    }
+    merged
+        .into_iter()
+        .filter(|(s, e)| e - s >= cfg.min_duration_s)
+        .map(|(start, end)| Window { start, end, pushed_part: None })
+        .collect()
+}
+
+/// Kinematic-mode windows: periods in which any part moves.
+pub fn motion_windows(tracks: &PartTracks, cfg: &WindowConfig) -> Vec<Window> {
+    let mut spans = Vec::new();
+    let (mut t_min, mut t_max) = (f64::INFINITY, f64::NEG_INFINITY);
+    for obs in tracks.values() {
+        let track: Vec<(f64, Point3<f64>)> = obs.iter().map(|o| (o.stamp, o.com)).collect();
+        if let (Some(a), Some(b)) = (track.first(), track.last()) {
+            t_min = t_min.min(a.0);
+            t_max = t_max.max(b.0);
+        }
+        spans.extend(hysteresis(&speeds(&track, cfg.speed_span_s), cfg.speed_open_mps, cfg.speed_close_mps, cfg.hold_s));
+    }
+    finish(spans, cfg, t_min, t_max)
+}
+
+/// Dynamic-mode windows: periods of applied force. `t_max` bounds the trailing margin (the
+/// last cloud stamp).
+pub fn force_windows(wrenches: &[WrenchSample], cfg: &WindowConfig, t_min: f64, t_max: f64) -> Vec<Window> {
+    let signal: Vec<(f64, f64)> = wrenches.iter().map(|w| (w.stamp, w.force.norm())).collect();
+    finish(hysteresis(&signal, cfg.force_open_n, cfg.force_close_n, cfg.hold_s), cfg, t_min, t_max)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::perception::PartObservation;
+
+    fn obs(t: f64, x: f64) -> PartObservation {
+        PartObservation {
+            stamp: t,
+            com: Point3::new(x, 0.0, 0.0),
+            com_sd: 0.001,
+            orientation: None,
+            orientation_sd: f64::NAN,
+            normal: None,
+            normal_sd: f64::NAN,
+            points: 10,
+            outliers: 0,
+        }
+    }
+
+    #[test]
+    fn one_motion_period_gives_one_window_with_margins() {
+        // Still for 2 s, moves at 0.1 m/s for 2 s, still for 2 s, at 30 Hz.
+        let track: Vec<PartObservation> = (0..180)
+            .map(|i| {
+                let t = i as f64 / 30.0;
+                obs(t, 0.1 * (t - 2.0).clamp(0.0, 2.0))
+            })
+            .collect();
+        let mut tracks = PartTracks::new();
+        tracks.insert(1, track);
+        let w = motion_windows(&tracks, &WindowConfig::default());
+        assert_eq!(w.len(), 1, "{w:?}");
+        assert!((w[0].start - 1.6).abs() < 0.15 && (w[0].end - 4.5).abs() < 0.2, "{w:?}");
+    }
+}
