@@ -1,11 +1,15 @@
 //! Counting and logging of bad input.
 //!
 //! Every stage that meets bad input (a malformed cloud, a NaN, an unknown frame, a truncated bag,
-//! time going backwards) reports it here: one line naming the topic or field and why, logged once
-//! per kind as a warning (later repeats at debug level so a bad stream cannot flood the log), and
-//! counted. The counts go into the summary so nothing disappears silently.
+//! time going backwards) reports it here: one line naming the topic or field and why, logged as a
+//! warning the first [`WARN_LIMIT`] times per kind (later repeats at debug level, so a bad stream
+//! cannot flood the log), and counted. The counts go into the summary so nothing disappears
+//! silently.
 
 use std::collections::BTreeMap;
+
+/// Warnings logged per `topic: kind` before later ones go to debug level.
+pub const WARN_LIMIT: u64 = 5;
 
 /// Counts of bad-input events by `topic: kind`.
 #[derive(Debug, Default, Clone, serde::Serialize)]
@@ -20,8 +24,11 @@ impl Diagnostics {
         let key = format!("{source}: {kind}");
         let n = self.counts.entry(key).or_insert(0);
         *n += 1;
-        if *n == 1 {
+        if *n <= WARN_LIMIT {
             tracing::warn!("{source}: {kind}: {detail}");
+            if *n == WARN_LIMIT {
+                tracing::warn!("{source}: {kind}: further ones are counted and logged at debug level");
+            }
         } else {
             tracing::debug!("{source}: {kind}: {detail} (seen {n} times)");
         }

@@ -64,6 +64,9 @@ pub fn parse_track(path: &Path) -> Result<Vec<TrackPose>, ImportError> {
         if !v.iter().all(|x| x.is_finite()) {
             return Err(bad("non-finite value".into()));
         }
+        if ![3, 7, 9].contains(&v.len()) {
+            return Err(bad(format!("{} columns; expected 3 (x y z), 7 (+ qx qy qz qw) or 9 (+ width height)", v.len())));
+        }
         let position = Vector3::new(v[0], v[1], v[2]);
         let pose = match v.len() {
             3 => TrackPose { position, orientation: None, size: None },
@@ -80,7 +83,7 @@ pub fn parse_track(path: &Path) -> Result<Vec<TrackPose>, ImportError> {
                 }
                 TrackPose { position, orientation: Some(UnitQuaternion::from_quaternion(q)), size }
             }
-            n => return Err(bad(format!("{n} columns; expected 3 (x y z), 7 (+ qx qy qz qw) or 9 (+ width height)"))),
+            _ => unreachable!("column count checked above"),
         };
         out.push(pose);
     }

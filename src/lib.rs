@@ -13,7 +13,7 @@
 //! ```no_run
 //! use bom::{config::Config, pipeline};
 //! let cfg = Config::default();
-//! let run = pipeline::replay(&["bags/sturm_cabinet_one_001.mcap".into()], &cfg).unwrap();
+//! let run = pipeline::replay(&["bags/sturm/cabinet_one_001.mcap".into()], &cfg).unwrap();
 //! for j in &run.posterior.as_ref().unwrap().joints {
 //!     println!("part {}: {:?} p={:?}", j.child, j.map_type, j.type_probs);
 //! }

@@ -175,7 +175,10 @@ fn pushed_part(rec: &Recording, w: &Window, threshold: f64) -> Option<u32> {
 }
 
 /// Write the output topics of a replay to an MCAP bag: `/bom/object_model` and `/bom/markers`
-/// after every update, `/bom/predicted_part_poses` for every cloud frame once a posterior exists.
+/// after every update (stamped at the end of the window that triggered it), and
+/// `/bom/predicted_part_poses` for every cloud frame from the posterior current at that time;
+/// frames before the first update, which the live node could not track yet, use the first
+/// posterior so that the whole recording is tracked.
 ///
 /// # Errors
 /// A one-line description naming the file.
@@ -191,8 +194,8 @@ pub fn write_output_bag(run: &Run, path: &Path, cfg: &Config) -> Result<(), Stri
         w.write("/bom/markers", "visualization_msgs/msg/MarkerArray", stamp.nanos(), &markers).map_err(err)?;
     }
     if let Some(first) = run.updates.first() {
-        // Frames: every stamp at which some part was seen, after the first update.
-        let mut stamps: Vec<f64> = run.tracks.values().flatten().map(|o| o.stamp).filter(|&t| t >= first.stamp).collect();
+        // Frames: every stamp at which some part was seen.
+        let mut stamps: Vec<f64> = run.tracks.values().flatten().map(|o| o.stamp).collect();
         stamps.sort_by(|a, b| a.total_cmp(b));
         stamps.dedup();
         let labels: Vec<u32> = first.posterior.joints.iter().map(|j| j.child).collect();

@@ -111,15 +111,17 @@ mod tests {
     fn quarter_turn_moves_com_along_the_circle() {
         let cfg = ModelConfig::default();
         let com0 = Vector3::new(1.0, 0.0, 0.0);
-        // Axis z through the origin: p = com0 + 0.5 * xi => xi = (-2, 0, 0).
-        let xi = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 3.0, -2.0, 0.0, 0.0];
+        // Axis z through the origin: p = com0 + axis_point_sd_m * xi.
+        let xi = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 3.0, -1.0 / cfg.axis_point_sd_m, 0.0, 0.0];
         let p = super::super::decode(super::super::JointType::Revolute, &xi, &com0, &cfg);
         let quarter = std::f64::consts::FRAC_PI_2 * p.radius;
         let x = super::super::displacement(&p, quarter).apply(&p.com);
         assert!((x - Vector3::new(0.0, 1.0, 0.0)).norm() < 1e-3, "{x}");
-        let track: Vec<Vector3<f64>> = (0..20).map(|i| { let a = 0.05 * i as f64; Vector3::new(a.cos(), a.sin(), 0.0) }).collect();
+        // A 0.5 m arc: the fitted centre is the origin, the coordinate the path length.
+        let com0 = Vector3::new(0.5, 0.0, 0.0);
+        let track: Vec<Vector3<f64>> = (0..20).map(|i| { let a = 0.05 * i as f64; Vector3::new(0.5 * a.cos(), 0.5 * a.sin(), 0.0) }).collect();
         let (axis, q) = init(&track, &com0, &cfg);
-        assert!((axis[3] * cfg.axis_point_sd_m + 1.0).abs() < 1e-6);
-        assert!((q[19] - 0.95).abs() < 1e-3, "{}", q[19]);
+        assert!((axis[3] * cfg.axis_point_sd_m + 0.5).abs() < 1e-6, "{axis:?}");
+        assert!((q[19].abs() - 0.475).abs() < 2e-3, "{}", q[19]);
     }
 }

@@ -38,6 +38,8 @@ impl BagWriter {
             .profile("ros2")
             .library(concat!("bom ", env!("CARGO_PKG_VERSION")))
             .compression(Some(mcap::Compression::Zstd))
+            // Small chunks: a bag cut short (a crash while recording) loses at most one chunk.
+            .chunk_size(Some(64 * 1024))
             .create(file)?;
         Ok(BagWriter { writer, channels: HashMap::new(), sequence: 0 })
     }
