@@ -49,3 +49,19 @@ impl Config {
         Ok(cfg)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The shipped parameters file states exactly the defaults.
+    #[test]
+    fn shipped_parameters_file_is_the_defaults() {
+        let cfg = Config::load(Path::new("config/bom.yaml")).unwrap();
+        assert_eq!(cfg, Config::new());
+        let bad = std::env::temp_dir().join("bom_bad_config.yaml");
+        std::fs::write(&bad, "bom:\n  ros__parameters:\n    windows: {force_open: 2}\n").unwrap();
+        let e = Config::load(&bad).unwrap_err();
+        assert!(e.contains("force_open"), "{e}");
+    }
+}

@@ -33,7 +33,7 @@ use crate::input::CloudFrame;
 
 /// Perception settings (`perception` section of the config).
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct PerceptionConfig {
     /// Minimum smallest principal standard deviation for the convex-hull centroid [m].
     pub min_thickness_m: f64,

@@ -18,7 +18,7 @@ use crate::perception::PartTracks;
 
 /// Window thresholds (`windows` section of the config).
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct WindowConfig {
     pub force_open_n: f64,
     pub force_close_n: f64,

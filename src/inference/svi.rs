@@ -44,7 +44,7 @@ const Q_SLOT: usize = 10;
 
 /// SVI settings (`inference` section of the config).
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct SviConfig {
     /// Particles (samples of all latent variables) per ELBO gradient.
     pub particles: usize,

@@ -191,7 +191,7 @@ pub fn read_bag(path: &Path, diag: &mut Diagnostics) -> Result<Bag, InputError> 
 
 /// Topic names and the fixed frame that the input stage listens to (contract section 1).
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct Topics {
     pub points: String,
     pub wrench: String,

@@ -87,7 +87,7 @@ impl JointType {
 /// Prior scales of the kinematic model (`model` section of the config). Standardised parameters
 /// are `N(0, 1)`; these scales map them to physical units.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct ModelConfig {
     /// Prior sd of the reference centre of mass around its perceived value [m].
     pub com_sd_m: f64,
