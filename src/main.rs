@@ -97,7 +97,7 @@ fn main() -> ExitCode {
                 }
             }
             if let Some(path) = out {
-                if let Err(e) = pipeline::write_output_bag(&run, &path, &cfg) {
+                if let Err(e) = output::write_replay_bag(&run, &path, &cfg) {
                     eprintln!("error: {e}");
                     return ExitCode::from(EXIT_ARGS);
                 }

@@ -5,18 +5,16 @@
 //! windows so far (contract section 1), and each update is kept so that the output bag carries
 //! the model as the node would have published it.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use indicatif::{ProgressBar, ProgressStyle};
-use nalgebra::{UnitQuaternion, Vector3};
 
 use crate::config::Config;
 use crate::diagnostics::Diagnostics;
 use crate::inference::{svi, Posterior};
 use crate::input::{self, CloudFrame, GroundTruth, InputError, Recording};
 use crate::model::likelihood::Evidence;
-use crate::output::{self, BagWriter};
 use crate::perception::{self, PartTracks, Perception};
 use crate::windows::{self, Window};
 
@@ -172,60 +170,4 @@ fn pushed_part(rec: &Recording, w: &Window, threshold: f64) -> Option<u32> {
     let contact = rec.wrenches.iter().find(|s| w.contains(s.stamp) && s.force.norm() > threshold)?;
     let cloud: &CloudFrame = rec.clouds.iter().min_by(|a, b| (a.stamp - contact.stamp).abs().total_cmp(&(b.stamp - contact.stamp).abs()))?;
     perception::nearest_part(cloud, &contact.point).map(|(l, _)| l)
-}
-
-/// Write the output topics of a replay to an MCAP bag: `/bom/object_model` and `/bom/markers`
-/// after every update (stamped at the end of the window that triggered it), and
-/// `/bom/predicted_part_poses` for every cloud frame from the posterior current at that time;
-/// frames before the first update, which the live node could not track yet, use the first
-/// posterior so that the whole recording is tracked.
-///
-/// # Errors
-/// A one-line description naming the file.
-pub fn write_output_bag(run: &Run, path: &Path, cfg: &Config) -> Result<(), String> {
-    let err = |e: output::bag::WriteError| format!("{}: {e}", path.display());
-    let mut w = BagWriter::create(path).map_err(err)?;
-    let frame = &cfg.fixed_frame;
-    for u in &run.updates {
-        let stamp = input::stamp(u.stamp);
-        let model = output::messages::object_model(&u.posterior, stamp, frame, run.mode, u.num_windows as u32);
-        w.write("/bom/object_model", "bom_msgs/msg/ObjectModel", stamp.nanos(), &model).map_err(err)?;
-        let markers = output::messages::markers(&u.posterior, stamp, frame);
-        w.write("/bom/markers", "visualization_msgs/msg/MarkerArray", stamp.nanos(), &markers).map_err(err)?;
-    }
-    if let Some(first) = run.updates.first() {
-        // Frames: every stamp at which some part was seen.
-        let mut stamps: Vec<f64> = run.tracks.values().flatten().map(|o| o.stamp).collect();
-        stamps.sort_by(|a, b| a.total_cmp(b));
-        stamps.dedup();
-        let labels: Vec<u32> = first.posterior.joints.iter().map(|j| j.child).collect();
-        let reference: Vec<UnitQuaternion<f64>> = labels
-            .iter()
-            .map(|l| run.tracks.get(l).and_then(|o| o.iter().find_map(|o| o.orientation)).unwrap_or_else(UnitQuaternion::identity))
-            .collect();
-        let mut coords = vec![0.0; labels.len()];
-        let mut cursor: std::collections::BTreeMap<u32, usize> = labels.iter().map(|l| (*l, 0)).collect();
-        for t in stamps {
-            let u = run.updates.iter().rev().find(|u| u.stamp <= t).unwrap_or(first);
-            if u.posterior.joints.len() != labels.len() {
-                continue;
-            }
-            let observed: Vec<Option<Vector3<f64>>> = labels
-                .iter()
-                .map(|l| {
-                    let obs = run.tracks.get(l)?;
-                    let c = cursor.get_mut(l)?;
-                    while *c < obs.len() && obs[*c].stamp < t {
-                        *c += 1;
-                    }
-                    (*c < obs.len() && obs[*c].stamp == t).then(|| obs[*c].com.coords)
-                })
-                .collect();
-            let poses = u.posterior.predict_poses(&observed, &mut coords, &reference);
-            let stamp = input::stamp(t);
-            let msg = output::messages::pose_array(&poses, stamp, frame);
-            w.write("/bom/predicted_part_poses", "geometry_msgs/msg/PoseArray", stamp.nanos(), &msg).map_err(err)?;
-        }
-    }
-    w.finish().map_err(err)
 }

@@ -63,3 +63,10 @@ pub fn replay(bags: &[PathBuf]) -> bom::pipeline::Run {
 pub fn type_probs(run: &bom::pipeline::Run) -> [f64; 3] {
     run.posterior.as_ref().expect("a posterior").joints[0].type_probs
 }
+
+/// The project's shared folder (`../shared` beside the repository, or `$BOM_SHARED_DIR`).
+pub fn shared_dir() -> PathBuf {
+    let dir = std::env::var_os("BOM_SHARED_DIR").map(PathBuf::from).unwrap_or_else(|| PathBuf::from("../shared"));
+    assert!(dir.join("data/sturm-articulation").is_dir(), "{}: no data/sturm-articulation (set BOM_SHARED_DIR)", dir.display());
+    dir
+}

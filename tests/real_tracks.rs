@@ -52,13 +52,13 @@ fn joint_types_of_every_real_track() {
 #[test]
 fn a_tenth_of_a_door_track_is_less_certain() {
     let dir = tempfile::tempdir().unwrap();
-    let src = "../shared/data/sturm-articulation/cabinet_one/004.log";
+    let src = shared_dir().join("data/sturm-articulation/cabinet_one/004.log");
     let text = std::fs::read_to_string(src).unwrap();
     let lines: Vec<&str> = text.lines().collect();
     let part = dir.path().join("first_tenth.log");
     std::fs::write(&part, lines[..lines.len() / 10].join("\n")).unwrap();
     let (full, tenth) = (dir.path().join("full.mcap"), dir.path().join("tenth.mcap"));
-    bom::import::import_tracks(&[src.into()], &full, None, 30.0, 4).unwrap();
+    bom::import::import_tracks(std::slice::from_ref(&src), &full, None, 30.0, 4).unwrap();
     bom::import::import_tracks(&[part], &tenth, None, 30.0, 4).unwrap();
     let top = |p: [f64; 3]| p.iter().cloned().fold(0.0, f64::max);
     let (pf, pt) = (type_probs(&replay(&[full])), type_probs(&replay(&[tenth])));

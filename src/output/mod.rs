@@ -7,3 +7,68 @@ pub mod messages;
 pub mod table;
 
 pub use bag::BagWriter;
+
+use std::path::Path;
+
+use nalgebra::{UnitQuaternion, Vector3};
+
+use crate::config::Config;
+use crate::input;
+use crate::pipeline::Run;
+
+
+/// Write the output topics of a replay to an MCAP bag: `/bom/object_model` and `/bom/markers`
+/// after every update (stamped at the end of the window that triggered it), and
+/// `/bom/predicted_part_poses` for every cloud frame from the posterior current at that time;
+/// frames before the first update, which the live node could not track yet, use the first
+/// posterior so that the whole recording is tracked.
+///
+/// # Errors
+/// A one-line description naming the file.
+pub fn write_replay_bag(run: &Run, path: &Path, cfg: &Config) -> Result<(), String> {
+    let err = |e: bag::WriteError| format!("{}: {e}", path.display());
+    let mut w = BagWriter::create(path).map_err(err)?;
+    let frame = &cfg.fixed_frame;
+    for u in &run.updates {
+        let stamp = input::stamp(u.stamp);
+        let model = messages::object_model(&u.posterior, stamp, frame, run.mode, u.num_windows as u32);
+        w.write("/bom/object_model", "bom_msgs/msg/ObjectModel", stamp.nanos(), &model).map_err(err)?;
+        let markers = messages::markers(&u.posterior, stamp, frame);
+        w.write("/bom/markers", "visualization_msgs/msg/MarkerArray", stamp.nanos(), &markers).map_err(err)?;
+    }
+    if let Some(first) = run.updates.first() {
+        // Frames: every stamp at which some part was seen.
+        let mut stamps: Vec<f64> = run.tracks.values().flatten().map(|o| o.stamp).collect();
+        stamps.sort_by(|a, b| a.total_cmp(b));
+        stamps.dedup();
+        let labels: Vec<u32> = first.posterior.joints.iter().map(|j| j.child).collect();
+        let reference: Vec<UnitQuaternion<f64>> = labels
+            .iter()
+            .map(|l| run.tracks.get(l).and_then(|o| o.iter().find_map(|o| o.orientation)).unwrap_or_else(UnitQuaternion::identity))
+            .collect();
+        let mut coords = vec![0.0; labels.len()];
+        let mut cursor: std::collections::BTreeMap<u32, usize> = labels.iter().map(|l| (*l, 0)).collect();
+        for t in stamps {
+            let u = run.updates.iter().rev().find(|u| u.stamp <= t).unwrap_or(first);
+            if u.posterior.joints.len() != labels.len() {
+                continue;
+            }
+            let observed: Vec<Option<Vector3<f64>>> = labels
+                .iter()
+                .map(|l| {
+                    let obs = run.tracks.get(l)?;
+                    let c = cursor.get_mut(l)?;
+                    while *c < obs.len() && obs[*c].stamp < t {
+                        *c += 1;
+                    }
+                    (*c < obs.len() && obs[*c].stamp == t).then(|| obs[*c].com.coords)
+                })
+                .collect();
+            let poses = u.posterior.predict_poses(&observed, &mut coords, &reference);
+            let stamp = input::stamp(t);
+            let msg = messages::pose_array(&poses, stamp, frame);
+            w.write("/bom/predicted_part_poses", "geometry_msgs/msg/PoseArray", stamp.nanos(), &msg).map_err(err)?;
+        }
+    }
+    w.finish().map_err(err)
+}
