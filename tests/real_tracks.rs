@@ -53,7 +53,7 @@ fn joint_types_of_every_real_track() {
 fn a_tenth_of_a_door_track_is_less_certain() {
     let dir = tempfile::tempdir().unwrap();
     let src = shared_dir().join("data/sturm-articulation/cabinet_one/004.log");
-    let text = std::fs::read_to_string(src).unwrap();
+    let text = std::fs::read_to_string(&src).unwrap();
     let lines: Vec<&str> = text.lines().collect();
     let part = dir.path().join("first_tenth.log");
     std::fs::write(&part, lines[..lines.len() / 10].join("\n")).unwrap();
