@@ -1,0 +1,581 @@
+"""Record interaction bags from MuJoCo on furniture models shipped in PyPI wheels (not bom's physics).
+
+A simulated robot pushes or pulls a handle of an articulated object with a force that ramps up,
+holds and releases; a fixed depth camera with per-pixel segmentation watches. The bag follows
+../shared/spec/interface.md: segmented PointCloud2 on /segmented_points (camera optical frame,
+pose on /tf_static), WrenchStamped on /applied_wrench at 200 Hz in the frame `contact` whose
+origin (on /tf) is the point of application, and a `bom_ground_truth` metadata record.
+
+    python bags/generate/record.py --object microwave --interactions 4 --seed 1 --out bags/mujoco/microwave.mcap
+    python bags/generate/record.py --object hingecabinet --effect spring=3.0 --undeclared --out ...
+
+The recorder is deterministic for a given seed (same machine, same MuJoCo).
+"""
+
+import argparse
+import json
+import math
+import os
+import sys
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+from mcap_ros2.writer import Writer  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[2]
+DEFS = REPO / "src" / "msgs" / "defs"
+
+
+def _site_packages(module):
+    """Folder of an installed package, found without importing it (only its files are used)."""
+    import importlib.util
+
+    spec = importlib.util.find_spec(module)
+    if spec is None or not spec.submodule_search_locations:
+        sys.exit(f"error: package {module} not installed (pip install --no-deps -r bags/generate/requirements-nodeps.txt)")
+    return Path(list(spec.submodule_search_locations)[0])
+
+
+def kitchen_dir():
+    return _site_packages("gymnasium_robotics") / "envs/assets/kitchen_franka/kitchen_assets"
+
+
+def metaworld_dir():
+    return _site_packages("metaworld") / "assets/objects"
+
+
+# --------------------------------------------------------------------------------------------
+# Objects: which shipped model, which bodies make each part, where the handles are.
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class ObjectSpec:
+    name: str
+    # (asset xml, chain xml, meshdir, texturedir) of each model composed into the scene, or
+    # ("adroit", path) for the Adroit door, loaded whole with the hand removed
+    models: list
+    # part name -> bodies (the part is the union of these bodies' geoms)
+    parts: dict
+    # joint name -> the handle pushed to move it: ("site", name), ("geom", name) or
+    # ("body", name, (x, y, z)) a point fixed in a body; an optional last entry (lo, hi) [N]
+    # overrides force_range for that joint
+    handles: dict
+    # where the object's root sits in the world (the gravity effect tilts it about the world y axis)
+    pos: tuple = (0.0, 0.0, 0.8)
+    # nested attachment: (child model index, parent body, position in the parent body)
+    attach: tuple = None
+    camera_pos: tuple = (0.35, -1.6, 1.45)
+    camera_target: tuple = (0.0, 0.0, 0.95)
+    force_range: tuple = (8.0, 14.0)
+    # joint name -> viscous damping replacing the shipped value (N s/m or N m s/rad): the shipped
+    # sliders have so little damping that any push that moves them also slams them into a stop
+    damping: dict = field(default_factory=dict)
+
+
+def kitchen_model(item):
+    k = kitchen_dir()
+    return (k / f"item_assets/{item}_asset.xml", k / f"item_assets/{item}_chain.xml", k / "item_assets", k / "textures")
+
+
+def metaworld_model(item):
+    m = metaworld_dir()
+    return (m / f"assets/{item}_dependencies.xml", m / f"assets/{item}.xml", m, m)
+
+
+OBJECTS = {
+    "microwave": lambda: ObjectSpec(
+        "microwave", [kitchen_model("microwave")],
+        {"microwave": ["microroot"], "door": ["microdoorroot"]},
+        {"microwave": ("site", "microhandle_site")},
+        force_range=(6.0, 10.0)),
+    "hingecabinet": lambda: ObjectSpec(
+        "hingecabinet", [kitchen_model("hingecabinet")],
+        {"cabinet": ["hingecab"], "left_door": ["hingeleftdoor"], "right_door": ["hingerightdoor"]},
+        {"left_hinge_cabinet": ("site", "hinge_site1"), "right_hinge_cabinet": ("site", "hinge_site2")},
+        force_range=(10.0, 14.0)),
+    "slidecabinet": lambda: ObjectSpec(
+        "slidecabinet", [kitchen_model("slidecabinet")],
+        {"cabinet": ["slide"], "door": ["slidelink"]},
+        {"slide_cabinet": ("site", "slide_site")},
+        force_range=(4.5, 7.0), damping={"slide_cabinet": 10.0}),
+    "drawer": lambda: ObjectSpec(
+        "drawer", [metaworld_model("drawer")],
+        {"case": ["drawercase_link"], "drawer": ["drawer_link"]},
+        {"goal_slidey": ("geom", "objGeom")},
+        pos=(0.0, 0.0, 0.75), camera_pos=(0.25, -0.9, 1.25), camera_target=(0.0, 0.0, 0.85),
+        force_range=(2.5, 4.0), damping={"goal_slidey": 10.0}),
+    # A door with a latch on it (a nested chain shipped as one model): frame, door, latch.
+    "adroit_door": lambda: ObjectSpec(
+        "adroit_door", [("adroit", _site_packages("gymnasium_robotics") / "envs/assets/adroit_hand/adroit_door.xml")],
+        {"frame": ["frame"], "door": ["door"], "latch": ["latch"]},
+        {"door_hinge": ("body", "door", (-0.1, -0.05, 0.15)), "latch": ("site", "S_handle", (40.0, 55.0))},
+        camera_pos=(0.45, -1.5, 0.95), camera_target=(0.25, 0.0, 0.4),
+        force_range=(9.0, 14.0)),
+    # A nested chain: a microwave standing on the sliding door of the slide cabinet, so the
+    # microwave's door hinges on a part that itself slides (composed with MjSpec.attach_body).
+    "slide_microwave": lambda: ObjectSpec(
+        "slide_microwave", [kitchen_model("slidecabinet"), kitchen_model("microwave")],
+        {"cabinet": ["slide"], "slider": ["slidelink"], "microwave": ["mw_microroot"], "microwave_door": ["mw_microdoorroot"]},
+        {"slide_cabinet": ("site", "slide_site", (12.0, 18.0)), "mw_microwave": ("site", "mw_microhandle_site")},
+        attach=(1, "slidelink", (0.0, 0.05, 0.2)), damping={"slide_cabinet": 40.0},
+        camera_pos=(0.4, -2.0, 1.9), camera_target=(0.0, 0.0, 1.15),
+        force_range=(6.0, 10.0)),
+}
+
+
+# --------------------------------------------------------------------------------------------
+# Scene composition
+# --------------------------------------------------------------------------------------------
+
+
+def model_spec(model, pos, euler):
+    asset, chain, meshdir, texdir = model
+    xml = f"""<mujoco>
+  <compiler angle="radian" meshdir="{meshdir}" texturedir="{texdir}"/>
+  <option timestep="0.001"/>
+  <visual><global offwidth="320" offheight="240"/></visual>
+  <include file="{asset}"/>
+  <worldbody>
+    <light pos="0 -1.5 3" dir="0 0.5 -1" directional="true"/>
+    <body name="object_base" pos="{pos[0]} {pos[1]} {pos[2]}" euler="{euler[0]} {euler[1]} {euler[2]}">
+      <include file="{chain}"/>
+    </body>
+  </worldbody>
+</mujoco>"""
+    # MuJoCo resolves <include> relative to the main file: write it next to nothing, use absolutes.
+    with tempfile.NamedTemporaryFile("w", suffix=".xml", delete=False) as f:
+        f.write(xml)
+        path = f.name
+    try:
+        return mujoco.MjSpec.from_file(path)
+    finally:
+        os.unlink(path)
+
+
+def look_at(eye, target):
+    """MuJoCo camera quaternion (camera looks along -z, y up) looking from eye to target."""
+    eye, target = np.array(eye, float), np.array(target, float)
+    back = eye - target
+    back /= np.linalg.norm(back)
+    right = np.cross([0.0, 0.0, 1.0], back)
+    right /= np.linalg.norm(right)
+    up = np.cross(back, right)
+    rot = np.stack([right, up, back], axis=1)
+    q = np.zeros(4)
+    mujoco.mju_mat2Quat(q, rot.flatten())
+    return q, rot
+
+
+def adroit_spec(path, tilt):
+    """The Adroit door scene without the hand, its table, actuators and sensors."""
+    spec = mujoco.MjSpec.from_file(str(path))
+    for name in ("forearm", "vive_tracker", "table"):
+        body = spec.body(name)
+        if body is not None:
+            spec.delete(body)
+    for group in (spec.actuators, spec.sensors, spec.tendons, spec.equalities):
+        for element in list(group):
+            spec.delete(element)
+    frame = spec.body("frame")
+    if any(tilt):
+        frame.alt.euler = list(tilt)
+    spec.visual.global_.offwidth, spec.visual.global_.offheight = 320, 240
+    spec.option.timestep = 0.001
+    return spec
+
+
+def build(spec_obj, effects):
+    tilt = (0.0, effects.get("gravity", 0.0), 0.0)
+    first = spec_obj.models[0]
+    spec = adroit_spec(first[1], tilt) if first[0] == "adroit" else model_spec(first, spec_obj.pos, tilt)
+    if spec_obj.attach:
+        child_index, parent_body, at = spec_obj.attach
+        child = model_spec(spec_obj.models[child_index], (0, 0, 0), (0, 0, 0))
+        root = child.worldbody.first_body().first_body()  # object_base -> the model's root body
+        frame = spec.body(parent_body).add_frame(pos=list(at))
+        frame.attach_body(root, "mw_", "")
+    q, _ = look_at(spec_obj.camera_pos, spec_obj.camera_target)
+    spec.worldbody.add_camera(name="depth", pos=list(spec_obj.camera_pos), quat=list(q), fovy=58.0)
+    model = spec.compile()
+    return model
+
+
+# --------------------------------------------------------------------------------------------
+# ROS message helpers (dicts for mcap_ros2), schemas from the .msg files bom embeds
+# --------------------------------------------------------------------------------------------
+
+PRIMITIVES = {"bool", "byte", "char", "int8", "uint8", "int16", "uint16", "int32", "uint32", "int64",
+              "uint64", "float32", "float64", "string", "wstring"}
+
+
+def msg_text(name):
+    pkg, typ = name.replace("/msg/", "/").split("/")
+    if name.endswith("TFMessage"):
+        return "geometry_msgs/TransformStamped[] transforms\n"
+    return (DEFS / pkg / f"{typ}.msg").read_text()
+
+
+def schema_text(name):
+    root = name.replace("/msg/", "/")
+    out, seen, queue = msg_text(root), {root}, []
+
+    def deps(pkg, text):
+        for line in text.splitlines():
+            line = line.split("#")[0].strip()
+            if not line or ("=" in line and line.split()[0] in PRIMITIVES):
+                continue
+            base = line.split()[0].split("[")[0].split("<=")[0]
+            if base in PRIMITIVES:
+                continue
+            yield base.replace("/msg/", "/") if "/" in base else f"{pkg}/{base}"
+
+    queue.extend(deps(root.split("/")[0], msg_text(root)))
+    while queue:
+        dep = queue.pop(0)
+        if dep in seen:
+            continue
+        seen.add(dep)
+        body = msg_text(dep)
+        out += "\n" + "=" * 80 + f"\nMSG: {dep}\n" + body
+        queue.extend(deps(dep.split("/")[0], body))
+    return out
+
+
+def stamp(t):
+    ns = int(round(t * 1e9))
+    return {"sec": ns // 1_000_000_000, "nanosec": ns % 1_000_000_000}
+
+
+def quat_xyzw(rot):
+    q = np.zeros(4)
+    mujoco.mju_mat2Quat(q, np.asarray(rot, float).flatten())
+    return {"x": float(q[1]), "y": float(q[2]), "z": float(q[3]), "w": float(q[0])}
+
+
+def transform(parent, child, t, pos, rot):
+    return {"header": {"stamp": stamp(t), "frame_id": parent}, "child_frame_id": child,
+            "transform": {"translation": {"x": float(pos[0]), "y": float(pos[1]), "z": float(pos[2])},
+                          "rotation": quat_xyzw(rot)}}
+
+
+def cloud_msg(t, frame, pts, labels):
+    pts = np.asarray(pts, dtype="<f4").reshape(-1, 3)
+    rec = np.zeros(len(pts), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("label", "<u4")])
+    rec["x"], rec["y"], rec["z"], rec["label"] = pts[:, 0], pts[:, 1], pts[:, 2], labels
+    fields = [{"name": n, "offset": 4 * i, "datatype": 7 if n != "label" else 6, "count": 1}
+              for i, n in enumerate(["x", "y", "z", "label"])]
+    return {"header": {"stamp": stamp(t), "frame_id": frame}, "height": 1, "width": len(pts),
+            "fields": fields, "is_bigendian": False, "point_step": 16, "row_step": 16 * len(pts),
+            "data": rec.tobytes(), "is_dense": True}
+
+
+# --------------------------------------------------------------------------------------------
+# The recorder
+# --------------------------------------------------------------------------------------------
+
+
+class Recorder:
+    WIDTH, HEIGHT = 240, 180
+    CLOUD_HZ, WRENCH_HZ = 30.0, 200.0
+
+    def __init__(self, spec_obj, effects, seed, max_points):
+        self.spec_obj, self.effects, self.max_points = spec_obj, effects, max_points
+        self.rng = np.random.default_rng(seed)
+        self.model = build(spec_obj, effects)
+        self.data = mujoco.MjData(self.model)
+        m = self.model
+        self.apply_effects()
+        # Start every pushed joint slightly open (15% into its range from the bound nearer 0), so
+        # that the recording starts away from the stops.
+        for jname in spec_obj.handles:
+            j = self.joint_id(jname)
+            lo, hi = m.jnt_range[j]
+            self.data.qpos[m.jnt_qposadr[j]] = lo + 0.15 * (hi - lo) if abs(lo) <= abs(hi) else hi - 0.15 * (hi - lo)
+        mujoco.mj_forward(m, self.data)
+        # Part label of every body: its own or its nearest listed ancestor's (0 = no part).
+        self.part_names = list(spec_obj.parts)
+        body_label = {}
+        for label, name in enumerate(self.part_names, start=1):
+            for body in spec_obj.parts[name]:
+                body_label[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, body)] = label
+        self.body_part = np.zeros(m.nbody, dtype=int)
+        for b in range(m.nbody):
+            a = b
+            while a > 0 and a not in body_label:
+                a = m.body_parentid[a]
+            self.body_part[b] = body_label.get(a, 0)
+        self.geom_part = self.body_part[m.geom_bodyid]
+        # Visual groups 0-2 only: collision geometry (group 4) duplicates the visuals.
+        self.geom_part[m.geom_group > 2] = 0
+        self.renderer = mujoco.Renderer(m, self.HEIGHT, self.WIDTH)
+        self.cam = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_CAMERA, "depth")
+        fovy = math.radians(m.cam_fovy[self.cam])
+        self.f = 0.5 * self.HEIGHT / math.tan(0.5 * fovy)
+
+    def joint_id(self, name):
+        return mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_JOINT, name)
+
+    def apply_effects(self):
+        m, e = self.model, self.effects
+        for jname, c in self.spec_obj.damping.items():
+            m.dof_damping[m.jnt_dofadr[self.joint_id(jname)]] = c
+        for jname in self.spec_obj.handles:
+            j = self.joint_id(jname)
+            dof = m.jnt_dofadr[j]
+            if "friction" in e:
+                m.dof_frictionloss[dof] *= e["friction"]
+            if "spring" in e:
+                m.jnt_stiffness[j] = e["spring"]
+                lo, hi = m.jnt_range[j]
+                m.qpos_spring[m.jnt_qposadr[j]] = 0.0 if lo <= 0.0 <= hi else lo
+            if "limit" in e:
+                lo, hi = m.jnt_range[j]
+                frac = e["limit"]
+                m.jnt_range[j] = (lo, lo + frac * (hi - lo)) if abs(lo) < abs(hi) else (hi - frac * (hi - lo), hi)
+                m.jnt_limited[j] = 1
+
+    # -- sensing ---------------------------------------------------------------------------
+
+    def camera_pose(self):
+        d = self.data
+        pos = d.cam_xpos[self.cam].copy()
+        rot = d.cam_xmat[self.cam].reshape(3, 3).copy()
+        # ROS optical frame: z forward, y down = MuJoCo camera frame rotated pi about x.
+        return pos, rot @ np.diag([1.0, -1.0, -1.0])
+
+    def cloud(self):
+        r, d, m = self.renderer, self.data, self.model
+        r.update_scene(d, camera=self.cam)
+        r.enable_depth_rendering()
+        depth = r.render().copy()
+        r.disable_depth_rendering()
+        r.enable_segmentation_rendering()
+        seg = r.render().copy()
+        r.disable_segmentation_rendering()
+        geom = seg[:, :, 0]
+        is_geom = seg[:, :, 1] == int(mujoco.mjtObj.mjOBJ_GEOM)
+        label = np.where(is_geom & (geom >= 0), self.geom_part[np.clip(geom, 0, m.ngeom - 1)], 0)
+        # Label noise at part boundaries: a pixel next to another part takes its label at 30%.
+        noisy = label.copy()
+        for dv, du in ((0, 1), (1, 0), (0, -1), (-1, 0)):
+            nb = np.roll(np.roll(label, dv, axis=0), du, axis=1)
+            swap = (nb != label) & (nb > 0) & (label > 0) & (self.rng.random(label.shape) < 0.3)
+            noisy[swap] = nb[swap]
+        label = noisy
+        valid = (label > 0) & (depth > 0.05) & (depth < 5.0)
+        valid &= self.rng.random(depth.shape) > 0.03  # dropped pixels
+        v, u = np.nonzero(valid)
+        z = depth[v, u]
+        z = z + self.rng.normal(0.0, 1.0, z.shape) * (0.001 + 0.0025 * z * z)  # depth-dependent noise
+        x = (u + 0.5 - 0.5 * self.WIDTH) / self.f * z
+        y = (v + 0.5 - 0.5 * self.HEIGHT) / self.f * z
+        pts, lab = np.stack([x, y, z], axis=1), label[v, u]
+        keep = []
+        for l in np.unique(lab):
+            idx = np.nonzero(lab == l)[0]
+            if len(idx) > self.max_points:
+                idx = np.sort(self.rng.choice(idx, self.max_points, replace=False))
+            keep.append(idx)
+        keep = np.concatenate(keep) if keep else np.zeros(0, dtype=int)
+        return pts[keep], lab[keep].astype(np.uint32)
+
+    def handle_point(self, jname):
+        kind, name = self.spec_obj.handles[jname][:2]
+        if kind == "body":
+            b = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, name)
+            offset = np.array(self.spec_obj.handles[jname][2], float)
+            return self.data.xpos[b] + self.data.xmat[b].reshape(3, 3) @ offset
+        if kind == "site":
+            return self.data.site_xpos[mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, name)].copy()
+        return self.data.geom_xpos[mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, name)].copy()
+
+    def push_direction(self, jname, sign, perturb):
+        m, d = self.model, self.data
+        j = self.joint_id(jname)
+        axis, anchor = d.xaxis[j].copy(), d.xanchor[j].copy()
+        if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE:
+            direction = np.cross(axis, self.handle_point(jname) - anchor)
+        else:
+            direction = axis.copy()
+        direction = sign * direction / np.linalg.norm(direction)
+        direction = direction + perturb
+        return direction / np.linalg.norm(direction)
+
+    # -- ground truth ----------------------------------------------------------------------
+
+    def ground_truth(self, declared):
+        m, d = self.model, self.data
+        mujoco.mj_forward(m, d)
+        parts = []
+        for label, name in enumerate(self.part_names, start=1):
+            body = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, self.spec_obj.parts[name][0])
+            parent_body = m.body_parentid[body]
+            parent = int(self.body_part[parent_body])
+            entry = {"label": label, "name": name, "parent": parent, "joint": "rigid",
+                     "mass": float(sum(m.body_mass[b] for b in range(m.nbody) if self.body_part[b] == label))}
+            if m.body_jntnum[body] == 1:
+                j = m.body_jntadr[body]
+                dof = m.jnt_dofadr[j]
+                kind = "revolute" if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE else "prismatic"
+                entry.update({"joint": kind, "axis_direction": [float(v) for v in d.xaxis[j]],
+                              "damping": float(m.dof_damping[dof]), "friction": float(m.dof_frictionloss[dof])})
+                if kind == "revolute":
+                    entry["axis_point"] = [float(v) for v in d.xanchor[j]]
+            parts.append(entry)
+        effects = []
+        if declared:
+            for jname in self.spec_obj.handles:
+                j = self.joint_id(jname)
+                part = int(self.body_part[m.jnt_bodyid[j]])
+                if "spring" in self.effects:
+                    effects.append({"part": part, "kind": "spring", "stiffness": float(m.jnt_stiffness[j]),
+                                    "rest_position": float(m.qpos_spring[m.jnt_qposadr[j]])})
+                if "limit" in self.effects:
+                    effects.append({"part": part, "kind": "joint_limit", "range": [float(v) for v in m.jnt_range[j]]})
+                if "friction" in self.effects:
+                    effects.append({"part": part, "kind": "extra_friction", "factor": float(self.effects["friction"])})
+                if "gravity" in self.effects:
+                    effects.append({"part": part, "kind": "gravity", "tilt_about_y_rad": float(self.effects["gravity"])})
+        return {"fixed_frame": "world", "parts": parts, "effects": effects}
+
+    # -- the recording -----------------------------------------------------------------------
+
+    def record(self, out, interactions, declared):
+        m, d = self.model, self.data
+        rng = self.rng
+        w = Writer(str(out), chunk_size=256 * 1024)
+        schemas = {t: w.register_msgdef(t, schema_text(t)) for t in (
+            "sensor_msgs/msg/PointCloud2", "geometry_msgs/msg/WrenchStamped", "tf2_msgs/msg/TFMessage")}
+        w.add_metadata("bom_ground_truth", {"json": json.dumps(self.ground_truth(declared))})
+        t0 = 1.0  # stamps start at 1 s
+        cam_pos, cam_rot = self.camera_pose()
+        w.write_message("/tf_static", schemas["tf2_msgs/msg/TFMessage"],
+                        {"transforms": [transform("world", "camera_optical", 0.0, cam_pos, cam_rot)]}, 0, 0)
+        # The schedule: rest, then per interaction ramp 0.2 s, hold, release 0.2 s, rest 1.5 s.
+        joints = list(self.spec_obj.handles)
+        plan = []
+        t = 0.5
+        for k in range(interactions):
+            jname = joints[k % len(joints)]
+            hold = rng.uniform(0.4, 0.7)
+            handle = self.spec_obj.handles[jname]
+            forces = handle[-1] if len(handle) > 2 and len(handle[-1]) == 2 else self.spec_obj.force_range
+            mag = rng.uniform(*forces)
+            perturb = rng.normal(0.0, 0.1, 3)
+            offset = rng.uniform(-0.02, 0.02, 3)  # contact point varies by up to 2 cm per axis
+            plan.append((t, t + 0.2, t + 0.2 + hold, t + 0.4 + hold, jname, mag, (perturb, offset)))
+            t += 0.4 + hold + 1.5
+        duration = t
+        steps = int(round(duration / m.opt.timestep))
+        next_cloud, next_wrench = 0.0, 0.0
+        seq = 0
+        sign = {j: None for j in joints}
+        contact = np.zeros(3)
+        # A careful robot lets go before a joint reaches its stop (within 30% of the range), unless
+        # the recording is about a joint limit being reached.
+        stopped = set()
+        q_min = {j: math.inf for j in joints}
+        q_max = {j: -math.inf for j in joints}
+        for step in range(steps + 1):
+            now = step * m.opt.timestep
+            force = np.zeros(3)
+            for k, (start, full, release, end, jname, mag, perturb) in enumerate(plan):
+                if start <= now < end and k not in stopped:
+                    jid = self.joint_id(jname)
+                    lo, hi = m.jnt_range[jid]
+                    qv = d.qpos[m.jnt_qposadr[jid]]
+                    if now - start < m.opt.timestep:
+                        # Each push heads for the farther stop.
+                        sign[jname] = 1.0 if (hi - qv) >= (qv - lo) else -1.0
+                    margin = 0.3 * (hi - lo)
+                    if "limit" not in self.effects and (
+                            (sign[jname] > 0 and qv > hi - margin) or (sign[jname] < 0 and qv < lo + margin)):
+                        stopped.add(k)
+                        continue
+                    scale = min(1.0, (now - start) / 0.2) if now < full else (1.0 if now < release else max(0.0, (end - now) / 0.2))
+                    perturb, offset = perturb
+                    body = m.jnt_bodyid[jid]
+                    # The offset is fixed in the pushed body, so the contact point moves with it.
+                    contact = self.handle_point(jname) + d.xmat[body].reshape(3, 3) @ offset
+                    direction = self.push_direction(jname, sign[jname], perturb)
+                    force = mag * scale * direction
+                    d.qfrc_applied[:] = 0.0
+                    mujoco.mj_applyFT(m, d, force, np.zeros(3), contact, body, d.qfrc_applied)
+                    break
+            else:
+                d.qfrc_applied[:] = 0.0
+            if now >= next_wrench - 1e-9:
+                ts = t0 + now
+                w.write_message("/tf", schemas["tf2_msgs/msg/TFMessage"],
+                                {"transforms": [transform("world", "contact", ts, contact, np.eye(3))]},
+                                int(ts * 1e9), int(ts * 1e9), seq)
+                w.write_message("/applied_wrench", schemas["geometry_msgs/msg/WrenchStamped"],
+                                {"header": {"stamp": stamp(ts), "frame_id": "contact"},
+                                 "wrench": {"force": dict(zip("xyz", map(float, force))),
+                                            "torque": {"x": 0.0, "y": 0.0, "z": 0.0}}},
+                                int(ts * 1e9), int(ts * 1e9), seq)
+                next_wrench += 1.0 / self.WRENCH_HZ
+                seq += 1
+            if now >= next_cloud - 1e-9:
+                ts = t0 + now
+                pts, lab = self.cloud()
+                w.write_message("/segmented_points", schemas["sensor_msgs/msg/PointCloud2"],
+                                cloud_msg(ts, "camera_optical", pts, lab), int(ts * 1e9), int(ts * 1e9), seq)
+                next_cloud += 1.0 / self.CLOUD_HZ
+                seq += 1
+            mujoco.mj_step(m, d)
+            for jname in joints:
+                qv = d.qpos[m.jnt_qposadr[self.joint_id(jname)]]
+                q_min[jname], q_max[jname] = min(q_min[jname], qv), max(q_max[jname], qv)
+        w.finish()
+        self.limits_reached = []
+        for jname in joints:
+            lo, hi = m.jnt_range[self.joint_id(jname)]
+            if q_min[jname] < lo + 1e-3 or q_max[jname] > hi - 1e-3:
+                self.limits_reached.append(jname)
+            print(f"  {jname}: q in [{q_min[jname]:.3f}, {q_max[jname]:.3f}] of range [{lo:.3f}, {hi:.3f}]")
+        return duration
+
+
+def parse_effects(items):
+    effects = {}
+    for item in items or []:
+        name, _, value = item.partition("=")
+        defaults = {"spring": 3.0, "limit": 0.3, "gravity": 0.35, "friction": 3.0}
+        if name not in defaults:
+            sys.exit(f"error: --effect {name}: unknown (spring, limit, gravity, friction)")
+        effects[name] = float(value) if value else defaults[name]
+    return effects
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--object", required=True, choices=sorted(OBJECTS))
+    ap.add_argument("--interactions", type=int, default=4)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--effect", action="append", help="spring[=N*m/rad or N/m]: spring return to the closed position; "
+                    "limit[=fraction of range]: the pushed joint's range narrowed so the push reaches the stop; "
+                    "gravity[=tilt rad]: the object tilted about y, so gravity acts along its joints; "
+                    "friction[=factor]: Coulomb friction multiplied")
+    ap.add_argument("--undeclared", action="store_true", help="leave the effects out of bom_ground_truth")
+    ap.add_argument("--max-points", type=int, default=150, help="points kept per part and frame")
+    ap.add_argument("--out", required=True)
+    args = ap.parse_args(argv)
+    effects = parse_effects(args.effect)
+    rec = Recorder(OBJECTS[args.object](), effects, args.seed, args.max_points)
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    duration = rec.record(args.out, args.interactions, declared=not args.undeclared)
+    print(f"wrote {args.out}: {args.object}, {args.interactions} interactions, {duration:.1f} s, effects {effects}"
+          f"{' (undeclared)' if args.undeclared and effects else ''}")
+    if rec.limits_reached and "limit" not in effects:
+        sys.exit(f"error: joint limit reached without the limit effect: {rec.limits_reached}")
+
+
+if __name__ == "__main__":
+    main()
