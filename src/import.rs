@@ -28,7 +28,7 @@ use crate::output::BagWriter;
 pub struct TrackPose {
     pub position: Vector3<f64>,
     pub orientation: Option<UnitQuaternion<f64>>,
-    /// Width and height of the tracked rectangle [m].
+    /// Width and height of the tracked rectangle \[m\].
     pub size: Option<(f64, f64)>,
 }
 

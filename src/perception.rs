@@ -35,14 +35,14 @@ use crate::input::CloudFrame;
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(default, deny_unknown_fields)]
 pub struct PerceptionConfig {
-    /// Minimum smallest principal standard deviation for the convex-hull centroid [m].
+    /// Minimum smallest principal standard deviation for the convex-hull centroid \[m\].
     pub min_thickness_m: f64,
-    /// Systematic floor added to the standard error of a centre of mass [m].
+    /// Systematic floor added to the standard error of a centre of mass \[m\].
     pub com_sd_floor_m: f64,
     /// Minimum ratio between principal variances for an orientation (or a surface normal) to be
     /// reported.
     pub orientation_min_ratio: f64,
-    /// Floor added to the standard deviation of a surface normal [rad].
+    /// Floor added to the standard deviation of a surface normal \[rad\].
     pub normal_sd_floor_rad: f64,
     /// Fewer points than this and the part is treated as not seen in that frame.
     pub min_points: usize,
@@ -57,20 +57,20 @@ impl Default for PerceptionConfig {
 /// One part seen in one frame.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PartObservation {
-    /// Header stamp [s].
+    /// Header stamp \[s\].
     pub stamp: f64,
-    /// Estimated centre of mass [m], fixed frame.
+    /// Estimated centre of mass \[m\], fixed frame.
     pub com: Point3<f64>,
-    /// Isotropic standard deviation of `com` [m].
+    /// Isotropic standard deviation of `com` \[m\].
     pub com_sd: f64,
     /// Orientation of the principal axes in the fixed frame, when the cloud supports it.
     pub orientation: Option<UnitQuaternion<f64>>,
-    /// Standard deviation of the orientation [rad] (NaN when `orientation` is None).
+    /// Standard deviation of the orientation \[rad\] (NaN when `orientation` is None).
     pub orientation_sd: f64,
     /// Unit surface normal (axis of least spread) where the cloud is flat enough to define it
     /// (second principal variance > `orientation_min_ratio` x the third), sign continuous in time.
     pub normal: Option<Vector3<f64>>,
-    /// Standard deviation of `normal` [rad] (NaN when None).
+    /// Standard deviation of `normal` \[rad\] (NaN when None).
     pub normal_sd: f64,
     /// Inlier points used.
     pub points: usize,
@@ -141,7 +141,7 @@ fn median(v: &mut [f64]) -> f64 {
     if n % 2 == 1 { v[n / 2] } else { 0.5 * (v[n / 2 - 1] + v[n / 2]) }
 }
 
-/// First-order angular sd [rad] of the eigenvector of variance `small` against the one of
+/// First-order angular sd \[rad\] of the eigenvector of variance `small` against the one of
 /// variance `big` (`big > small`), from `n` points: `atan(sqrt(small * big / (n * (big - small)^2)))`.
 fn eigenvector_sd(small: f64, big: f64, n: usize) -> f64 {
     (small * big / (n as f64 * (big - small).powi(2)).max(1e-300)).sqrt().atan()
@@ -258,6 +258,17 @@ pub fn estimate(
     (obs, axes)
 }
 
+/// The part whose points lie nearest to `point` (contract: the pushed part is the one nearest the
+/// contact point), with that distance \[m\].
+pub fn nearest_part(cloud: &CloudFrame, point: &Point3<f64>) -> Option<(u32, f64)> {
+    cloud
+        .points
+        .iter()
+        .zip(&cloud.labels)
+        .map(|(p, l)| (*l, (p - point).norm()))
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -291,15 +302,4 @@ mod tests {
         assert!((o.com - Point3::new(0.02, 0.02, 0.5)).norm() < 1e-9);
         assert!(o.orientation.is_none() && axes.is_none());
     }
-}
-
-/// The part whose points lie nearest to `point` (contract: the pushed part is the one nearest the
-/// contact point), with that distance [m].
-pub fn nearest_part(cloud: &CloudFrame, point: &Point3<f64>) -> Option<(u32, f64)> {
-    cloud
-        .points
-        .iter()
-        .zip(&cloud.labels)
-        .map(|(p, l)| (*l, (p - point).norm()))
-        .min_by(|a, b| a.1.total_cmp(&b.1))
 }

@@ -51,7 +51,7 @@ pub struct Timing {
 /// One posterior update, after a window closed.
 #[derive(Debug, Clone)]
 pub struct Update {
-    /// End of the window that triggered it [s].
+    /// End of the window that triggered it \[s\].
     pub stamp: f64,
     pub num_windows: usize,
     pub posterior: Posterior,

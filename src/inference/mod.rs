@@ -18,11 +18,11 @@ pub struct AxisSummary {
     pub joint: JointType,
     /// Posterior mean unit direction, fixed frame.
     pub direction: Vector3<f64>,
-    /// Root-mean-square angle of posterior samples to `direction` [deg].
+    /// Root-mean-square angle of posterior samples to `direction` \[deg\].
     pub direction_sd_deg: f64,
-    /// Revolute: posterior mean of the axis point closest to the part's centre of mass [m].
+    /// Revolute: posterior mean of the axis point closest to the part's centre of mass \[m\].
     pub point: Option<Vector3<f64>>,
-    /// Root-mean-square distance of sampled points to `point` [m] (NaN when no point).
+    /// Root-mean-square distance of sampled points to `point` \[m\] (NaN when no point).
     pub point_sd_m: f64,
 }
 
@@ -54,12 +54,12 @@ pub struct JointSummary {
 pub struct Posterior {
     /// One per part, in evidence (label) order.
     pub joints: Vec<JointSummary>,
-    /// ELBO estimate at convergence [nats].
+    /// ELBO estimate at convergence \[nats\].
     pub elbo: f64,
     pub iterations: usize,
-    /// Wall time of the fit [s].
+    /// Wall time of the fit \[s\].
     pub runtime_s: f64,
-    /// Evidence grid stamps [s].
+    /// Evidence grid stamps \[s\].
     pub times: Vec<f64>,
 }
 

@@ -65,19 +65,19 @@ pub struct SviConfig {
     /// discrete logits are averaged (Polyak) for the reported probabilities.
     pub final_iters: usize,
     pub final_lr_scale: f64,
-    /// Adam learning rates: standardised globals (mean and log-sd), coordinates [m], logits.
+    /// Adam learning rates: standardised globals (mean and log-sd), coordinates \[m\], logits.
     pub lr_global: f64,
     pub lr_coordinate_m: f64,
     pub lr_logits: f64,
     /// Gumbel-softmax temperature and rounding threshold (paper §3.3).
     pub tau: f64,
     pub delta: f64,
-    /// Least time between grid frames [s] (see [`Evidence::new`] for why), unless a window would
+    /// Least time between grid frames \[s\] (see [`Evidence::new`] for why), unless a window would
     /// then keep fewer than `min_frames`; and the most grid frames.
     pub min_dt_s: f64,
     pub min_frames: usize,
     pub max_frames: usize,
-    /// Initial guide sds: standardised globals, coordinates [m].
+    /// Initial guide sds: standardised globals, coordinates \[m\].
     pub init_global_sd: f64,
     pub init_coordinate_sd_m: f64,
     /// Samples used for the posterior summaries.
@@ -181,6 +181,7 @@ struct Member {
 ///
 /// `pre[t]` is the parent's displacement at frame `t`; `subtree` the descendants relative to
 /// part `i`'s frame. Surface normals, where observed, add their likelihood.
+#[allow(clippy::too_many_arguments)]
 fn block_pass(
     ev: &Evidence,
     i: usize,

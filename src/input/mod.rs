@@ -40,7 +40,7 @@ pub struct BagMessage {
     pub schema: String,
     /// Channel message encoding, `cdr` for ROS 2.
     pub encoding: String,
-    /// Log time [ns].
+    /// Log time \[ns\].
     pub log_time: u64,
     pub data: Vec<u8>,
 }
@@ -213,9 +213,9 @@ impl Default for Topics {
 /// One segmented cloud, in the fixed frame.
 #[derive(Debug, Clone)]
 pub struct CloudFrame {
-    /// Header stamp [s].
+    /// Header stamp \[s\].
     pub stamp: f64,
-    /// Points [m], fixed frame.
+    /// Points \[m\], fixed frame.
     pub points: Vec<Point3<f64>>,
     /// Part label of each point (>= 1).
     pub labels: Vec<u32>,
@@ -224,11 +224,11 @@ pub struct CloudFrame {
 /// One applied wrench, in the fixed frame.
 #[derive(Debug, Clone)]
 pub struct WrenchSample {
-    /// Header stamp [s].
+    /// Header stamp \[s\].
     pub stamp: f64,
-    /// Point of application (the contact frame's origin) [m], fixed frame.
+    /// Point of application (the contact frame's origin) \[m\], fixed frame.
     pub point: Point3<f64>,
-    /// Force [N], fixed frame.
+    /// Force \[N\], fixed frame.
     pub force: Vector3<f64>,
     /// Torque [N m], fixed frame.
     pub torque: Vector3<f64>,

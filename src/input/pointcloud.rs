@@ -9,7 +9,7 @@ use crate::msgs::{PointCloud2, PointField};
 /// The labelled points of one cloud, in the cloud's `header.frame_id`.
 #[derive(Debug, Clone, Default)]
 pub struct LabeledPoints {
-    /// Point coordinates [m], in the cloud's frame; label-0 and non-finite points are dropped.
+    /// Point coordinates \[m\], in the cloud's frame; label-0 and non-finite points are dropped.
     pub points: Vec<[f64; 3]>,
     /// Part label of each point (>= 1).
     pub labels: Vec<u32>,

@@ -21,12 +21,12 @@ use crate::windows::Window;
 pub struct PartSeries {
     /// Part label (>= 1).
     pub label: u32,
-    /// Perceived reference centre of mass [m] (first observation in the windows).
+    /// Perceived reference centre of mass \[m\] (first observation in the windows).
     pub com0: Vector3<f64>,
-    /// Per grid frame: observed centre of mass [m] and its perception sd [m], or None (occluded).
+    /// Per grid frame: observed centre of mass \[m\] and its perception sd \[m\], or None (occluded).
     pub obs: Vec<Option<(Vector3<f64>, f64)>>,
     /// Surface normal at the reference frame (grid frame of the first observation), if the
-    /// part's clouds define one there; then `normals` holds the observed normals and their sd [rad].
+    /// part's clouds define one there; then `normals` holds the observed normals and their sd \[rad\].
     pub normal0: Option<Vector3<f64>>,
     pub normals: Vec<Option<(Vector3<f64>, f64)>>,
 }
@@ -34,7 +34,7 @@ pub struct PartSeries {
 /// Observations of all parts on a common time grid.
 #[derive(Debug, Clone)]
 pub struct Evidence {
-    /// Grid stamps [s].
+    /// Grid stamps \[s\].
     pub times: Vec<f64>,
     /// Whether a grid frame starts a new window (the first frame always does).
     pub window_start: Vec<bool>,
@@ -132,7 +132,7 @@ pub fn log_likelihood_point<T: Real>(y: &Vector3<f64>, x: &Vector3<T>, sigma: T,
     -(d.dot(&d)) / (var * 2.0) - (var * (2.0 * std::f64::consts::PI)).ln() * 1.5
 }
 
-/// `log N(n_obs; n_pred, sd^2 I_2)`: a surface normal observed with angular sd `sd` [rad]
+/// `log N(n_obs; n_pred, sd^2 I_2)`: a surface normal observed with angular sd `sd` \[rad\]
 /// (small-angle Gaussian on the sphere, two degrees of freedom).
 #[inline]
 pub fn log_likelihood_normal<T: Real>(n_obs: &Vector3<f64>, n_pred: &Vector3<T>, sd: f64) -> T {

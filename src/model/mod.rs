@@ -89,19 +89,19 @@ impl JointType {
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(default, deny_unknown_fields)]
 pub struct ModelConfig {
-    /// Prior sd of the reference centre of mass around its perceived value [m].
+    /// Prior sd of the reference centre of mass around its perceived value \[m\].
     pub com_sd_m: f64,
-    /// Median of the log-normal prior on the observation noise sigma [m].
+    /// Median of the log-normal prior on the observation noise sigma \[m\].
     pub noise_median_m: f64,
     /// Log-sd of that prior.
     pub noise_log_sd: f64,
-    /// Prior sd of a revolute axis point around the part's reference centre of mass [m].
+    /// Prior sd of a revolute axis point around the part's reference centre of mass \[m\].
     pub axis_point_sd_m: f64,
     /// Velocity scale of the random-walk prior on joint coordinates [m/s of centre-of-mass path].
     pub velocity_sd_mps: f64,
-    /// Prior sd of the first joint coordinate of every window after the first [m].
+    /// Prior sd of the first joint coordinate of every window after the first \[m\].
     pub window_start_sd_m: f64,
-    /// Minimum effective radius of a revolute joint, so `angle = path / radius` stays finite [m].
+    /// Minimum effective radius of a revolute joint, so `angle = path / radius` stays finite \[m\].
     pub min_radius_m: f64,
     /// Prior probabilities of rigid, prismatic, revolute.
     pub type_prior: [f64; 3],
@@ -156,20 +156,20 @@ impl Displacement<f64> {
 #[derive(Debug, Clone, Copy)]
 pub struct JointParams<T: Real> {
     pub joint: JointType,
-    /// Reference centre of mass of the child part [m].
+    /// Reference centre of mass of the child part \[m\].
     pub com: Vector3<T>,
-    /// Observation noise sd [m].
+    /// Observation noise sd \[m\].
     pub noise: T,
     /// Unit axis direction (prismatic, revolute).
     pub direction: Vector3<T>,
-    /// A point on the axis [m] (revolute).
+    /// A point on the axis \[m\] (revolute).
     pub point: Vector3<T>,
-    /// Effective radius of the centre of mass around the axis [m] (revolute).
+    /// Effective radius of the centre of mass around the axis \[m\] (revolute).
     pub radius: T,
 }
 
 /// Decode the standardised parameters `xi` (length [`JointType::num_params`]) of `joint`;
-/// `com0` is the perceived reference centre of mass [m].
+/// `com0` is the perceived reference centre of mass \[m\].
 pub fn decode<T: Real>(joint: JointType, xi: &[T], com0: &Vector3<f64>, cfg: &ModelConfig) -> JointParams<T> {
     let com = Vector3::new(
         c::<T>(com0.x) + xi[0] * cfg.com_sd_m,
@@ -186,7 +186,7 @@ pub fn decode<T: Real>(joint: JointType, xi: &[T], com0: &Vector3<f64>, cfg: &Mo
 }
 
 /// The screw displacement of a joint at coordinate `q` (path length of the child's centre of
-/// mass [m]), relative to the reference configuration.
+/// mass \[m\]), relative to the reference configuration.
 pub fn displacement<T: Real>(p: &JointParams<T>, q: T) -> Displacement<T> {
     match p.joint {
         JointType::Rigid => Displacement::identity(),
@@ -208,7 +208,7 @@ pub fn rotation<T: Real>(k: &Vector3<T>, angle: T) -> Matrix3<T> {
     Matrix3::identity() + kx * s + (kx * kx) * (c::<T>(1.0) - co)
 }
 
-/// The joint coordinate that best explains an observed centre of mass `y` [m] (fixed frame,
+/// The joint coordinate that best explains an observed centre of mass `y` \[m\] (fixed frame,
 /// already expressed relative to the parent's displacement): the projection onto a prismatic
 /// axis, or the angle about a revolute axis times the radius. Used for tracking predicted poses.
 pub fn track_coordinate(p: &JointParams<f64>, y: &Vector3<f64>) -> f64 {

@@ -5,7 +5,7 @@
 //!   the sphere, so the prior over directions is uniform (the 6D screw of paper §3.2 with zero
 //!   rotational part).
 //!
-//! Joint coordinate `q` [m]: displacement along `d`, which is the path length of the centre of mass.
+//! Joint coordinate `q` \[m\]: displacement along `d`, which is the path length of the centre of mass.
 
 use super::{normalize, Displacement, JointParams, Real};
 use nalgebra::{Matrix3, Vector3};

@@ -2,9 +2,9 @@
 //!
 //! Standardised parameters after the common block of [`super::rigid`]:
 //! - `xi[4..7] = v ~ N(0, I)`, `d = v / |v|` (uniform prior over directions);
-//! - `xi[7..10]`: axis point `p = com0 + axis_point_sd_m * xi[7..10]` [m].
+//! - `xi[7..10]`: axis point `p = com0 + axis_point_sd_m * xi[7..10]` \[m\].
 //!
-//! Joint coordinate `q` [m]: path length of the centre of mass, so the rotation angle is
+//! Joint coordinate `q` \[m\]: path length of the centre of mass, so the rotation angle is
 //! `q / r` with `r = sqrt(dist(com, axis)^2 + min_radius_m^2)`. Measuring every movable joint in
 //! metres of centre-of-mass path makes the smoothness prior on coordinates the same statement for
 //! prismatic and revolute joints; otherwise its Occam factor (one per frame) would favour one type

@@ -2,10 +2,10 @@
 //!
 //! Standardised parameters (all `N(0, 1)` a priori, paper §3.2), shared as the first block by
 //! every joint type:
-//! - `xi[0..3]`: reference centre of mass `com = com0 + com_sd_m * xi[0..3]` [m], `com0` the
+//! - `xi[0..3]`: reference centre of mass `com = com0 + com_sd_m * xi[0..3]` \[m\], `com0` the
 //!   perceived centre of mass at the reference frame (paper: "each node has a center-of-mass
 //!   parameter");
-//! - `xi[3]`: observation noise `sigma = noise_median_m * exp(noise_log_sd * xi[3])` [m].
+//! - `xi[3]`: observation noise `sigma = noise_median_m * exp(noise_log_sd * xi[3])` \[m\].
 //!
 //! No joint coordinate; the displacement is the identity.
 
