@@ -21,6 +21,12 @@
 //! the guide's probability, so the fixed point is `q(type) ∝ p(type) exp(ELBO_type)`, the
 //! Bayesian model comparison with its Occam factor.
 //!
+//! **Schedule.** Phase 1 fits the continuous guides alone until the summed conditional ELBOs
+//! settle (they do not depend on the discrete guide); phase 2 also updates the discrete logits
+//! until they settle (earlier, their per-choice objectives are still noisy fits and lock in wrong
+//! choices); phase 3 runs `final_iters` more at a reduced learning rate and averages the logits
+//! (Polyak) for the reported probabilities.
+//!
 //! The analytic parts of the ELBO (KL of the standard-normal priors, the random-walk prior of
 //! the coordinates, guide entropies, categorical KLs) are exact; only the likelihood is sampled.
 
