@@ -15,6 +15,7 @@
 //! differences).
 
 pub mod likelihood;
+pub mod physics;
 pub mod prismatic;
 pub mod revolute;
 pub mod rigid;
