@@ -21,6 +21,7 @@
 
 pub mod config;
 pub mod diagnostics;
+pub mod eval;
 pub mod import;
 pub mod inference;
 pub mod input;

@@ -7,7 +7,7 @@ use clap::{Parser, Subcommand};
 
 use bom::config::Config;
 use bom::model::JointType;
-use bom::{import, output, pipeline};
+use bom::{eval, import, output, pipeline};
 
 #[derive(Parser)]
 #[command(name = "bom", version, about = "Bayesian Object Models for ROS 2: articulated-object posteriors from segmented clouds")]
@@ -34,6 +34,19 @@ enum Command {
         /// Print the wall time of every stage.
         #[arg(long)]
         timing: bool,
+    },
+    /// Replay, then the metrics of contract section 6 against the bags' bom_ground_truth.
+    Eval {
+        #[arg(required = true)]
+        bags: Vec<PathBuf>,
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Write the metrics (JSON) here.
+        #[arg(long)]
+        json: Option<PathBuf>,
+        /// Add the paper's Disconnected and Clique baselines.
+        #[arg(long)]
+        baselines: bool,
     },
     /// Convert articulation_models track logs into a bag.
     ImportTracks {
@@ -69,17 +82,51 @@ fn main() -> ExitCode {
         .without_time()
         .init();
     let cli = Cli::parse();
+    let load = |config: Option<PathBuf>| match config {
+        Some(path) => Config::load(&path).map_err(|e| {
+            eprintln!("error: config {e}");
+            ExitCode::from(EXIT_ARGS)
+        }),
+        None => Ok(Config::new()),
+    };
     match cli.command {
+        Command::Eval { bags, config, json, baselines } => {
+            let cfg = match load(config) {
+                Ok(c) => c,
+                Err(code) => return code,
+            };
+            let run = match pipeline::replay(&bags, &cfg) {
+                Ok(r) => r,
+                Err(e) => {
+                    eprintln!("error: {e}");
+                    return ExitCode::from(EXIT_INPUT);
+                }
+            };
+            let Some(gt) = run.ground_truth.as_ref() else {
+                let names: Vec<String> = bags.iter().map(|b| b.display().to_string()).collect();
+                eprintln!("error: {}: no 'bom_ground_truth' metadata record to evaluate against", names.join(", "));
+                return ExitCode::from(EXIT_INPUT);
+            };
+            let Some(post) = run.posterior.as_ref() else {
+                eprintln!("error: no posterior: no part was observed inside an interaction window");
+                return ExitCode::from(EXIT_INPUT);
+            };
+            let metrics = eval::evaluate(gt, post, baselines);
+            print!("{}", output::table::render(&run));
+            print!("{}", eval::render(&metrics));
+            if let Some(path) = json {
+                let text = serde_json::to_string_pretty(&metrics).expect("metrics serialise");
+                if let Err(e) = std::fs::write(&path, text + "\n") {
+                    eprintln!("error: {}: {e}", path.display());
+                    return ExitCode::from(EXIT_ARGS);
+                }
+            }
+            ExitCode::SUCCESS
+        }
         Command::Replay { bags, config, json, out, timing } => {
-            let cfg = match config {
-                Some(path) => match Config::load(&path) {
-                    Ok(c) => c,
-                    Err(e) => {
-                        eprintln!("error: config {e}");
-                        return ExitCode::from(EXIT_ARGS);
-                    }
-                },
-                None => Config::new(),
+            let cfg = match load(config) {
+                Ok(c) => c,
+                Err(code) => return code,
             };
             let run = match pipeline::replay(&bags, &cfg) {
                 Ok(r) => r,

@@ -1,0 +1,210 @@
+//! `bom eval`: the metrics of contract section 6 — a replay's posterior against the bags'
+//! `bom_ground_truth` (the paper's Joint%, Graph MSE and IdE, Table 1, plus parent accuracy and
+//! axis errors).
+
+use nalgebra::Vector3;
+use serde::Serialize;
+
+use crate::inference::Posterior;
+use crate::input::{GroundTruth, GtPart};
+use crate::model::JointType;
+
+/// The metrics of one part (`null` where the ground truth or the estimate lacks the quantity).
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct PartMetrics {
+    pub label: u32,
+    pub true_joint: String,
+    pub estimated_joint: Option<String>,
+    pub joint_correct: bool,
+    pub true_parent: u32,
+    pub estimated_parent: Option<u32>,
+    pub parent_correct: bool,
+    /// Mean over candidate parents of `(1[true] - P)^2`.
+    pub graph_mse: f64,
+    pub axis_angle_deg: Option<f64>,
+    pub axis_offset_m: Option<f64>,
+    /// `|median - true| / |true|` of damping and friction (dynamic mode only).
+    pub damping_rel_error: Option<f64>,
+    pub friction_rel_error: Option<f64>,
+}
+
+/// Graph MSE of the paper's baselines: the empty graph (every `P = 0`) and the complete graph
+/// (every `P = 1`).
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct Baselines {
+    pub disconnected_graph_mse: f64,
+    pub clique_graph_mse: f64,
+}
+
+/// The report of `bom eval` (contract section 6).
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct Metrics {
+    pub joint_accuracy: f64,
+    pub graph_mse: f64,
+    pub parent_accuracy: f64,
+    pub ide: Option<f64>,
+    pub axis_angle_deg: Option<f64>,
+    pub axis_offset_m: Option<f64>,
+    pub per_part: Vec<PartMetrics>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub baselines: Option<Baselines>,
+}
+
+fn median(mut v: Vec<f64>) -> Option<f64> {
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(|a, b| a.total_cmp(b));
+    let n = v.len();
+    Some(if n % 2 == 1 { v[n / 2] } else { 0.5 * (v[n / 2 - 1] + v[n / 2]) })
+}
+
+/// Static nodes: the fixed frame (0) and parts joined to it by rigid joints only.
+fn static_nodes(gt: &GroundTruth) -> Vec<u32> {
+    let mut out = vec![0];
+    loop {
+        let before = out.len();
+        for p in &gt.parts {
+            if JointType::parse(&p.joint) == Some(JointType::Rigid) && out.contains(&p.parent) && !out.contains(&p.label) {
+                out.push(p.label);
+            }
+        }
+        if out.len() == before {
+            return out;
+        }
+    }
+}
+
+/// Angle between two axis directions, sign ignored \[deg\].
+fn axis_angle(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
+    (a.dot(b).abs() / (a.norm() * b.norm())).clamp(-1.0, 1.0).acos().to_degrees()
+}
+
+/// Distance between the lines `p1 + s d1` and `p2 + t d2` \[m\].
+fn line_distance(p1: &Vector3<f64>, d1: &Vector3<f64>, p2: &Vector3<f64>, d2: &Vector3<f64>) -> f64 {
+    let n = d1.cross(d2);
+    let w = p2 - p1;
+    if n.norm() < 1e-9 {
+        // Parallel: the distance from p2 to the first line.
+        let d = d1 / d1.norm();
+        (w - d * w.dot(&d)).norm()
+    } else {
+        w.dot(&n).abs() / n.norm()
+    }
+}
+
+fn part_metrics(gt: &GroundTruth, part: &GtPart, post: &Posterior, statics: &[u32]) -> PartMetrics {
+    let joint = post.joints.iter().find(|j| j.child == part.label);
+    let true_type = JointType::parse(&part.joint);
+    let est_type = joint.map(|j| j.map_type);
+    // Candidates: the fixed frame and every other part of the ground truth.
+    let candidates: Vec<u32> = std::iter::once(0).chain(gt.parts.iter().map(|p| p.label).filter(|&l| l != part.label)).collect();
+    let prob = |c: u32| joint.and_then(|j| j.parent_probs.iter().find(|(l, _)| *l == c).map(|x| x.1)).unwrap_or(0.0);
+    let graph_mse =
+        candidates.iter().map(|&c| ((c == part.parent) as u8 as f64 - prob(c)).powi(2)).sum::<f64>() / candidates.len() as f64;
+    let est_parent = joint.map(|j| j.parent);
+    let parent_correct = match est_parent {
+        Some(p) => p == part.parent || (statics.contains(&part.parent) && statics.contains(&p)),
+        None => false,
+    };
+    let axis = joint.and_then(|j| j.axis.as_ref()).filter(|_| est_type.is_some_and(|t| t.movable()));
+    let axis_angle_deg = match (axis, part.axis_direction) {
+        (Some(a), Some(d)) if true_type.is_some_and(|t| t.movable()) => Some(axis_angle(&a.direction, &Vector3::from(d))),
+        _ => None,
+    };
+    let axis_offset_m = match (axis.and_then(|a| a.point.map(|p| (p, a.direction))), part.axis_direction, part.axis_point) {
+        (Some((p, d)), Some(td), Some(tp)) if true_type == Some(JointType::Revolute) => {
+            Some(line_distance(&p, &d, &Vector3::from(tp), &Vector3::from(td)))
+        }
+        _ => None,
+    };
+    PartMetrics {
+        label: part.label,
+        true_joint: part.joint.clone(),
+        estimated_joint: est_type.map(|t| t.name().to_string()),
+        joint_correct: est_type.is_some() && est_type == true_type,
+        true_parent: part.parent,
+        estimated_parent: est_parent,
+        parent_correct,
+        graph_mse,
+        axis_angle_deg,
+        axis_offset_m,
+        // Kinodynamic estimates arrive with dynamic inference; until then they are unknown.
+        damping_rel_error: None,
+        friction_rel_error: None,
+    }
+}
+
+/// Compute the metrics of a posterior against ground truth. `baselines` adds the paper's
+/// Disconnected and Clique rows.
+pub fn evaluate(gt: &GroundTruth, post: &Posterior, baselines: bool) -> Metrics {
+    let statics = static_nodes(gt);
+    let per_part: Vec<PartMetrics> = gt.parts.iter().map(|p| part_metrics(gt, p, post, &statics)).collect();
+    let n = per_part.len().max(1) as f64;
+    let movable = |m: &&PartMetrics| JointType::parse(&m.true_joint).is_some_and(|t| t.movable());
+    let ide = median(
+        per_part.iter().filter(movable).flat_map(|m| [m.damping_rel_error, m.friction_rel_error]).flatten().collect(),
+    );
+    let k = gt.parts.len() as f64;
+    Metrics {
+        joint_accuracy: per_part.iter().filter(|m| m.joint_correct).count() as f64 / n,
+        graph_mse: per_part.iter().map(|m| m.graph_mse).sum::<f64>() / n,
+        parent_accuracy: per_part.iter().filter(|m| m.parent_correct).count() as f64 / n,
+        ide,
+        axis_angle_deg: median(per_part.iter().filter(movable).filter_map(|m| m.axis_angle_deg).collect()),
+        axis_offset_m: median(per_part.iter().filter_map(|m| m.axis_offset_m).collect()),
+        // Each part has one true parent among k candidates (the fixed frame and k - 1 parts).
+        baselines: baselines.then(|| Baselines { disconnected_graph_mse: 1.0 / k.max(1.0), clique_graph_mse: (k - 1.0).max(0.0) / k.max(1.0) }),
+        per_part,
+    }
+}
+
+/// A readable table of the metrics.
+pub fn render(m: &Metrics) -> String {
+    use std::fmt::Write;
+    let opt = |v: Option<f64>, p: usize| v.map(|x| format!("{x:.p$}")).unwrap_or_else(|| "-".into());
+    let mut s = String::new();
+    let _ = writeln!(s, "  {:>5} {:>10} {:>10} {:>6} {:>7} {:>9} {:>10} {:>9}", "part", "true", "estimated", "parent", "P-MSE", "axis[deg]", "offset[m]", "correct");
+    for p in &m.per_part {
+        let _ = writeln!(
+            s,
+            "  {:>5} {:>10} {:>10} {:>6} {:>7.4} {:>9} {:>10} {:>9}",
+            p.label,
+            p.true_joint,
+            p.estimated_joint.as_deref().unwrap_or("-"),
+            p.estimated_parent.map(|x| x.to_string()).unwrap_or("-".into()),
+            p.graph_mse,
+            opt(p.axis_angle_deg, 2),
+            opt(p.axis_offset_m, 4),
+            if p.joint_correct && p.parent_correct { "yes" } else { "no" }
+        );
+    }
+    let _ = writeln!(
+        s,
+        "  joint_accuracy {:.3}  graph_mse {:.4}  parent_accuracy {:.3}  ide {}  axis_angle_deg {}  axis_offset_m {}",
+        m.joint_accuracy,
+        m.graph_mse,
+        m.parent_accuracy,
+        opt(m.ide, 3),
+        opt(m.axis_angle_deg, 2),
+        opt(m.axis_offset_m, 4)
+    );
+    if let Some(b) = &m.baselines {
+        let _ = writeln!(s, "  baselines: Disconnected graph_mse {:.3}, Clique graph_mse {:.3}", b.disconnected_graph_mse, b.clique_graph_mse);
+    }
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn line_distances_and_angles() {
+        let (z, x) = (Vector3::z(), Vector3::x());
+        assert!((line_distance(&Vector3::zeros(), &z, &Vector3::new(0.3, 0.4, 2.0), &z) - 0.5).abs() < 1e-12);
+        assert!((line_distance(&Vector3::zeros(), &z, &Vector3::new(0.0, 0.7, 1.0), &x) - 0.7).abs() < 1e-12);
+        assert!((axis_angle(&z, &-z)).abs() < 1e-6);
+        assert!((axis_angle(&z, &Vector3::new(0.0, 1.0, 1.0)) - 45.0).abs() < 1e-9);
+    }
+}

@@ -1,0 +1,58 @@
+//! `bom eval`: contract section 6 metrics against bom_ground_truth.
+
+mod common;
+
+use common::*;
+
+fn eval_json(args: &[&str]) -> serde_json::Value {
+    let dir = tempfile::tempdir().unwrap();
+    let json = dir.path().join("m.json");
+    let mut all = vec!["eval"];
+    all.extend_from_slice(args);
+    all.extend_from_slice(&["--json", json.to_str().unwrap()]);
+    let (code, stdout, stderr) = bom(&all);
+    assert_eq!(code, 0, "{stderr}");
+    assert!(stdout.contains("joint_accuracy"), "{stdout}");
+    serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap()
+}
+
+#[test]
+fn a_real_drawer_track_scores_perfectly_on_structure() {
+    let m = eval_json(&["bags/sturm/drawer_001.mcap"]);
+    assert_eq!(m["joint_accuracy"], 1.0);
+    assert_eq!(m["parent_accuracy"], 1.0);
+    assert!(m["graph_mse"].as_f64().unwrap() < 1e-6);
+    // The real tracks know no axes and no kinodynamics.
+    assert!(m["axis_angle_deg"].is_null() && m["axis_offset_m"].is_null() && m["ide"].is_null());
+    assert!(m.get("baselines").is_none());
+}
+
+#[test]
+fn a_three_part_cabinet_reports_every_part_and_the_baselines() {
+    let m = eval_json(&["bags/mujoco/hingecabinet.mcap", "--baselines"]);
+    let parts = m["per_part"].as_array().unwrap();
+    assert_eq!(parts.len(), 3);
+    for key in ["joint_accuracy", "graph_mse", "parent_accuracy"] {
+        let v = m[key].as_f64().unwrap();
+        assert!((0.0..=1.0).contains(&v), "{key} = {v}");
+    }
+    // Each part has 3 candidate parents (the fixed frame and the two other parts).
+    assert!((m["baselines"]["disconnected_graph_mse"].as_f64().unwrap() - 1.0 / 3.0).abs() < 1e-12);
+    assert!((m["baselines"]["clique_graph_mse"].as_f64().unwrap() - 2.0 / 3.0).abs() < 1e-12);
+    // The doors have true axes, so their angle errors are reported; the rigid body has none.
+    assert!(parts[1]["axis_angle_deg"].is_number() && parts[2]["axis_angle_deg"].is_number());
+    assert!(parts[0]["axis_angle_deg"].is_null());
+    let mean: f64 = parts.iter().map(|p| p["graph_mse"].as_f64().unwrap()).sum::<f64>() / 3.0;
+    assert!((mean - m["graph_mse"].as_f64().unwrap()).abs() < 1e-12);
+}
+
+#[test]
+fn a_bag_without_ground_truth_is_invalid_input() {
+    let dir = tempfile::tempdir().unwrap();
+    let bag = dir.path().join("nogt.mcap");
+    let src = shared_dir().join("data/sturm-articulation/second_set/drawer/001.log");
+    bom::import::import_tracks(&[src], &bag, None, 30.0, 4).unwrap();
+    let (code, _, err) = bom(&["eval", bag.to_str().unwrap()]);
+    assert_eq!(code, 3, "{err}");
+    assert!(err.contains("nogt.mcap") && err.contains("bom_ground_truth"), "{err}");
+}
