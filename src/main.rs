@@ -16,15 +16,23 @@ struct Cli {
     command: Command,
 }
 
+/// The bags and settings of a replay (shared by `replay` and `eval`).
+#[derive(clap::Args)]
+struct ReplayInput {
+    /// Bags of one object (several bags = several interactions with it).
+    #[arg(required = true)]
+    bags: Vec<PathBuf>,
+    /// Settings (YAML, or a ROS 2 parameters file with a `bom: ros__parameters:` section).
+    #[arg(long)]
+    config: Option<PathBuf>,
+}
+
 #[derive(Subcommand)]
 enum Command {
     /// Run the node's whole pipeline on recorded bags (several bags = several interactions with one object).
     Replay {
-        #[arg(required = true)]
-        bags: Vec<PathBuf>,
-        /// Settings (YAML, or a ROS 2 parameters file with a `bom: ros__parameters:` section).
-        #[arg(long)]
-        config: Option<PathBuf>,
+        #[command(flatten)]
+        input: ReplayInput,
         /// Write the JSON summary here.
         #[arg(long)]
         json: Option<PathBuf>,
@@ -37,10 +45,8 @@ enum Command {
     },
     /// Replay, then the metrics of contract section 6 against the bags' bom_ground_truth.
     Eval {
-        #[arg(required = true)]
-        bags: Vec<PathBuf>,
-        #[arg(long)]
-        config: Option<PathBuf>,
+        #[command(flatten)]
+        input: ReplayInput,
         /// Write the metrics (JSON) here.
         #[arg(long)]
         json: Option<PathBuf>,
@@ -73,6 +79,22 @@ fn parse_joint(s: &str) -> Result<JointType, String> {
 const EXIT_ARGS: u8 = 2;
 const EXIT_INPUT: u8 = 3;
 
+/// Load the settings and run the pipeline; a bad configuration exits 2, unusable bags 3.
+fn replay(input: &ReplayInput) -> Result<(pipeline::Run, Config), ExitCode> {
+    let cfg = match &input.config {
+        Some(path) => Config::load(path).map_err(|e| {
+            eprintln!("error: config {e}");
+            ExitCode::from(EXIT_ARGS)
+        })?,
+        None => Config::new(),
+    };
+    let run = pipeline::replay(&input.bags, &cfg).map_err(|e| {
+        eprintln!("error: {e}");
+        ExitCode::from(EXIT_INPUT)
+    })?;
+    Ok((run, cfg))
+}
+
 fn main() -> ExitCode {
     tracing_subscriber::fmt()
         .with_env_filter(tracing_subscriber::EnvFilter::try_from_env("BOM_LOG").unwrap_or_else(|_| "info".into()))
@@ -82,28 +104,14 @@ fn main() -> ExitCode {
         .without_time()
         .init();
     let cli = Cli::parse();
-    let load = |config: Option<PathBuf>| match config {
-        Some(path) => Config::load(&path).map_err(|e| {
-            eprintln!("error: config {e}");
-            ExitCode::from(EXIT_ARGS)
-        }),
-        None => Ok(Config::new()),
-    };
     match cli.command {
-        Command::Eval { bags, config, json, baselines } => {
-            let cfg = match load(config) {
-                Ok(c) => c,
+        Command::Eval { input, json, baselines } => {
+            let (run, _) = match replay(&input) {
+                Ok(r) => r,
                 Err(code) => return code,
             };
-            let run = match pipeline::replay(&bags, &cfg) {
-                Ok(r) => r,
-                Err(e) => {
-                    eprintln!("error: {e}");
-                    return ExitCode::from(EXIT_INPUT);
-                }
-            };
             let Some(gt) = run.ground_truth.as_ref() else {
-                let names: Vec<String> = bags.iter().map(|b| b.display().to_string()).collect();
+                let names: Vec<String> = input.bags.iter().map(|b| b.display().to_string()).collect();
                 eprintln!("error: {}: no 'bom_ground_truth' metadata record to evaluate against", names.join(", "));
                 return ExitCode::from(EXIT_INPUT);
             };
@@ -123,17 +131,10 @@ fn main() -> ExitCode {
             }
             ExitCode::SUCCESS
         }
-        Command::Replay { bags, config, json, out, timing } => {
-            let cfg = match load(config) {
-                Ok(c) => c,
-                Err(code) => return code,
-            };
-            let run = match pipeline::replay(&bags, &cfg) {
+        Command::Replay { input, json, out, timing } => {
+            let (run, cfg) = match replay(&input) {
                 Ok(r) => r,
-                Err(e) => {
-                    eprintln!("error: {e}");
-                    return ExitCode::from(EXIT_INPUT);
-                }
+                Err(code) => return code,
             };
             print!("{}", output::table::render(&run));
             if let Some(path) = json {

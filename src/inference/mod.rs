@@ -40,8 +40,7 @@ pub struct JointSummary {
     /// `P(rigid), P(prismatic), P(revolute)`.
     pub type_probs: [f64; 3],
     pub map_type: JointType,
-    /// The movable type whose axis is summarised.
-    pub axis_type: JointType,
+    /// Axis of the more probable movable type (its `joint` says which).
     pub axis: Option<AxisSummary>,
     /// Guide-mean physical parameters per joint type (rigid, prismatic, revolute).
     pub mean_params: [JointParams<f64>; 3],
@@ -59,8 +58,6 @@ pub struct Posterior {
     pub iterations: usize,
     /// Wall time of the fit \[s\].
     pub runtime_s: f64,
-    /// Evidence grid stamps \[s\].
-    pub times: Vec<f64>,
 }
 
 impl Posterior {

@@ -424,10 +424,10 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig) -> Option<Poster
                     transforms[g_tree.parent[i] - 1].clone()
                 };
                 let desc = descendants(&g_tree.parent, i);
+                let inv: Vec<Displacement<f64>> = (0..k_frames).map(|t| inverse(&transforms[i][t])).collect();
                 let subtree: Vec<Member> = desc
                     .iter()
                     .map(|&m| {
-                        let inv: Vec<Displacement<f64>> = (0..k_frames).map(|t| inverse(&transforms[i][t])).collect();
                         Member {
                             m,
                             z: (0..k_frames).map(|t| inv[t].apply(&positions[m][t])).collect(),
@@ -725,7 +725,6 @@ fn summarise(
             parent_probs,
             type_probs,
             map_type,
-            axis_type,
             axis,
             mean_params,
             coordinates,
@@ -736,7 +735,6 @@ fn summarise(
         elbo,
         iterations,
         runtime_s: started.elapsed().as_secs_f64(),
-        times: ev.times.clone(),
     }
 }
 

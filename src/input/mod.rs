@@ -17,7 +17,7 @@ use nalgebra::{Point3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use crate::diagnostics::Diagnostics;
-use crate::msgs::{self, PointCloud2, TFMessage, Time, WrenchStamped};
+use crate::msgs::{self, PointCloud2, TFMessage, WrenchStamped};
 pub use pointcloud::LabeledPoints;
 pub use tf::TfBuffer;
 
@@ -374,9 +374,4 @@ pub fn wrench_in_fixed_frame(
         force: iso.rotation * Vector3::new(f.x, f.y, f.z),
         torque: iso.rotation * Vector3::new(t.x, t.y, t.z),
     })
-}
-
-/// Stamp helper for writers and tests.
-pub fn stamp(seconds: f64) -> Time {
-    Time::from_seconds(seconds)
 }

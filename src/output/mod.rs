@@ -13,7 +13,7 @@ use std::path::Path;
 use nalgebra::{UnitQuaternion, Vector3};
 
 use crate::config::Config;
-use crate::input;
+use crate::msgs::Time;
 use crate::pipeline::Run;
 
 
@@ -30,7 +30,7 @@ pub fn write_replay_bag(run: &Run, path: &Path, cfg: &Config) -> Result<(), Stri
     let mut w = BagWriter::create(path).map_err(err)?;
     let frame = &cfg.fixed_frame;
     for u in &run.updates {
-        let stamp = input::stamp(u.stamp);
+        let stamp = Time::from_seconds(u.stamp);
         let model = messages::object_model(&u.posterior, stamp, frame, run.mode, u.num_windows as u32);
         w.write("/bom/object_model", "bom_msgs/msg/ObjectModel", stamp.nanos(), &model).map_err(err)?;
         let markers = messages::markers(&u.posterior, stamp, frame);
@@ -65,7 +65,7 @@ pub fn write_replay_bag(run: &Run, path: &Path, cfg: &Config) -> Result<(), Stri
                 })
                 .collect();
             let poses = u.posterior.predict_poses(&observed, &mut coords, &reference);
-            let stamp = input::stamp(t);
+            let stamp = Time::from_seconds(t);
             let msg = messages::pose_array(&poses, stamp, frame);
             w.write("/bom/predicted_part_poses", "geometry_msgs/msg/PoseArray", stamp.nanos(), &msg).map_err(err)?;
         }
