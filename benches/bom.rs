@@ -29,6 +29,8 @@ fn cabinet<T: Real>(x: &[T; 6]) -> Articulation<T> {
         inertia: inertia(m),
         damping: d,
         friction: f,
+        stiffness: T::from(0.0),
+        rest: T::from(0.0),
     };
     Articulation {
         bodies: vec![
@@ -42,6 +44,8 @@ fn cabinet<T: Real>(x: &[T; 6]) -> Articulation<T> {
                 inertia: inertia(T::from(8.0)),
                 damping: T::from(0.0),
                 friction: T::from(0.0),
+                stiffness: T::from(0.0),
+                rest: T::from(0.0),
             },
             door(1.0, x[0], x[1], x[2]),
             door(-1.0, x[3], x[4], x[5]),
@@ -80,7 +84,7 @@ fn inference(c: &mut Criterion) {
     let cfg = Config::new();
     let bag: PathBuf = "bags/sturm/left_door_001.mcap".into();
     let run = bom::pipeline::replay(std::slice::from_ref(&bag), &cfg).expect("bundled bag");
-    let ev = Evidence::new(&run.tracks, &run.windows, cfg.inference.min_dt_s, cfg.inference.min_frames, cfg.inference.max_frames);
+    let ev = Evidence::new(&run.tracks, &run.geometry, &run.windows, &[], &[], &bom::pipeline::grid(&cfg));
     let mut g = c.benchmark_group("inference");
     g.sample_size(20);
     g.bench_function("kinematic BOM-SVI posterior, real door track (left_door_001)", |b| {

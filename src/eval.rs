@@ -23,9 +23,33 @@ pub struct PartMetrics {
     pub graph_mse: f64,
     pub axis_angle_deg: Option<f64>,
     pub axis_offset_m: Option<f64>,
-    /// `|median - true| / |true|` of damping and friction (dynamic mode only).
+    /// `|median - true| / |true|` of damping and friction (dynamic mode; not defined for a true
+    /// value of 0).
     pub damping_rel_error: Option<f64>,
     pub friction_rel_error: Option<f64>,
+    /// Whether the true value lies in the 90% posterior interval (calibration, beyond contract
+    /// section 6): damping and friction in `[q05, q95]` (not defined for a true value of 0, which
+    /// a positive parameter's interval cannot hold), the axis direction within the 90% credible
+    /// cone.
+    pub damping_covered: Option<bool>,
+    pub friction_covered: Option<bool>,
+    pub axis_covered: Option<bool>,
+    /// The 90% intervals themselves, for the report.
+    pub damping_interval: Option<[f64; 2]>,
+    pub friction_interval: Option<[f64; 2]>,
+    pub axis_cone_deg: Option<f64>,
+}
+
+/// Calibration over all movable parts: how often the truth lies in the 90% posterior interval.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct Coverage {
+    /// Cases inside / cases counted, per quantity and in all.
+    pub damping: [usize; 2],
+    pub friction: [usize; 2],
+    pub axis_angle: [usize; 2],
+    pub all: [usize; 2],
+    /// `all[0] / all[1]`.
+    pub fraction: Option<f64>,
 }
 
 /// Graph MSE of the paper's baselines: the empty graph (every `P = 0`) and the complete graph
@@ -45,6 +69,7 @@ pub struct Metrics {
     pub ide: Option<f64>,
     pub axis_angle_deg: Option<f64>,
     pub axis_offset_m: Option<f64>,
+    pub coverage: Coverage,
     pub per_part: Vec<PartMetrics>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub baselines: Option<Baselines>,
@@ -118,6 +143,18 @@ fn part_metrics(gt: &GroundTruth, part: &GtPart, post: &Posterior, statics: &[u3
         }
         _ => None,
     };
+    let kd = joint.and_then(|j| j.kinodynamics.as_ref()).filter(|_| est_type.is_some_and(|t| t.movable()) && true_type.is_some_and(|t| t.movable()));
+    let rel = |est: Option<f64>, truth: Option<f64>| match (est, truth) {
+        (Some(e), Some(t)) if t != 0.0 => Some((e - t).abs() / t.abs()),
+        _ => None,
+    };
+    let inside = |iv: Option<[f64; 2]>, truth: Option<f64>| match (iv, truth) {
+        (Some([lo, hi]), Some(t)) if t != 0.0 => Some(lo <= t && t <= hi),
+        _ => None,
+    };
+    let damping_interval = kd.map(|k| [k.damping.q05, k.damping.q95]);
+    let friction_interval = kd.map(|k| [k.friction.q05, k.friction.q95]);
+    let axis_cone_deg = axis.map(|a| a.direction_q90_deg);
     PartMetrics {
         label: part.label,
         true_joint: part.joint.clone(),
@@ -129,9 +166,14 @@ fn part_metrics(gt: &GroundTruth, part: &GtPart, post: &Posterior, statics: &[u3
         graph_mse,
         axis_angle_deg,
         axis_offset_m,
-        // Kinodynamic estimates arrive with dynamic inference; until then they are unknown.
-        damping_rel_error: None,
-        friction_rel_error: None,
+        damping_rel_error: rel(kd.map(|k| k.damping.median), part.damping),
+        friction_rel_error: rel(kd.map(|k| k.friction.median), part.friction),
+        damping_covered: inside(damping_interval, part.damping),
+        friction_covered: inside(friction_interval, part.friction),
+        axis_covered: axis_angle_deg.zip(axis_cone_deg).map(|(a, c)| a <= c),
+        damping_interval,
+        friction_interval,
+        axis_cone_deg,
     }
 }
 
@@ -146,6 +188,13 @@ pub fn evaluate(gt: &GroundTruth, post: &Posterior, baselines: bool) -> Metrics 
         per_part.iter().filter(movable).flat_map(|m| [m.damping_rel_error, m.friction_rel_error]).flatten().collect(),
     );
     let k = gt.parts.len() as f64;
+    let count = |f: &dyn Fn(&PartMetrics) -> Option<bool>| {
+        let v: Vec<bool> = per_part.iter().filter(movable).filter_map(f).collect();
+        [v.iter().filter(|b| **b).count(), v.len()]
+    };
+    let (d, f, a) = (count(&|m| m.damping_covered), count(&|m| m.friction_covered), count(&|m| m.axis_covered));
+    let all = [d[0] + f[0] + a[0], d[1] + f[1] + a[1]];
+    let coverage = Coverage { damping: d, friction: f, axis_angle: a, all, fraction: (all[1] > 0).then(|| all[0] as f64 / all[1] as f64) };
     Metrics {
         joint_accuracy: per_part.iter().filter(|m| m.joint_correct).count() as f64 / n,
         graph_mse: per_part.iter().map(|m| m.graph_mse).sum::<f64>() / n,
@@ -153,6 +202,7 @@ pub fn evaluate(gt: &GroundTruth, post: &Posterior, baselines: bool) -> Metrics 
         ide,
         axis_angle_deg: median(per_part.iter().filter(movable).filter_map(|m| m.axis_angle_deg).collect()),
         axis_offset_m: median(per_part.iter().filter_map(|m| m.axis_offset_m).collect()),
+        coverage,
         // Each part has one true parent among k candidates (the fixed frame and k - 1 parts).
         baselines: baselines.then(|| Baselines { disconnected_graph_mse: 1.0 / k.max(1.0), clique_graph_mse: (k - 1.0).max(0.0) / k.max(1.0) }),
         per_part,
@@ -163,12 +213,21 @@ pub fn evaluate(gt: &GroundTruth, post: &Posterior, baselines: bool) -> Metrics 
 pub fn render(m: &Metrics) -> String {
     use std::fmt::Write;
     let opt = |v: Option<f64>, p: usize| v.map(|x| format!("{x:.p$}")).unwrap_or_else(|| "-".into());
+    let mark = |c: Option<bool>| match c {
+        Some(true) => "in",
+        Some(false) => "OUT",
+        None => "-",
+    };
     let mut s = String::new();
-    let _ = writeln!(s, "  {:>5} {:>10} {:>10} {:>6} {:>7} {:>9} {:>10} {:>9}", "part", "true", "estimated", "parent", "P-MSE", "axis[deg]", "offset[m]", "correct");
+    let _ = writeln!(
+        s,
+        "  {:>5} {:>10} {:>10} {:>6} {:>7} {:>9} {:>10} {:>9} {:>9} {:>9}  {}",
+        "part", "true", "estimated", "parent", "P-MSE", "axis[deg]", "offset[m]", "damp.err", "fric.err", "correct", "in 90% interval (damping, friction, axis)"
+    );
     for p in &m.per_part {
         let _ = writeln!(
             s,
-            "  {:>5} {:>10} {:>10} {:>6} {:>7.4} {:>9} {:>10} {:>9}",
+            "  {:>5} {:>10} {:>10} {:>6} {:>7.4} {:>9} {:>10} {:>9} {:>9} {:>9}  {} {} {}",
             p.label,
             p.true_joint,
             p.estimated_joint.as_deref().unwrap_or("-"),
@@ -176,7 +235,12 @@ pub fn render(m: &Metrics) -> String {
             p.graph_mse,
             opt(p.axis_angle_deg, 2),
             opt(p.axis_offset_m, 4),
-            if p.joint_correct && p.parent_correct { "yes" } else { "no" }
+            opt(p.damping_rel_error, 3),
+            opt(p.friction_rel_error, 3),
+            if p.joint_correct && p.parent_correct { "yes" } else { "no" },
+            mark(p.damping_covered),
+            mark(p.friction_covered),
+            mark(p.axis_covered),
         );
     }
     let _ = writeln!(
@@ -188,6 +252,12 @@ pub fn render(m: &Metrics) -> String {
         opt(m.ide, 3),
         opt(m.axis_angle_deg, 2),
         opt(m.axis_offset_m, 4)
+    );
+    let c = &m.coverage;
+    let _ = writeln!(
+        s,
+        "  90% interval coverage: damping {}/{}, friction {}/{}, axis {}/{}, all {}/{} = {}",
+        c.damping[0], c.damping[1], c.friction[0], c.friction[1], c.axis_angle[0], c.axis_angle[1], c.all[0], c.all[1], opt(c.fraction, 3)
     );
     if let Some(b) = &m.baselines {
         let _ = writeln!(s, "  baselines: Disconnected graph_mse {:.3}, Clique graph_mse {:.3}", b.disconnected_graph_mse, b.clique_graph_mse);

@@ -5,6 +5,7 @@
 //! windows so far (contract section 1), and each update is kept so that the output bag carries
 //! the model as the node would have published it.
 
+use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
@@ -14,8 +15,8 @@ use crate::config::Config;
 use crate::diagnostics::Diagnostics;
 use crate::inference::{svi, Posterior};
 use crate::input::{self, CloudFrame, GroundTruth, InputError, Recording};
-use crate::model::likelihood::Evidence;
-use crate::perception::{self, PartTracks, Perception};
+use crate::model::likelihood::{Evidence, Grid};
+use crate::perception::{self, PartGeometry, PartTracks, Perception};
 use crate::windows::{self, Window};
 
 /// Why a replay could not run (exit code 3).
@@ -66,6 +67,8 @@ pub struct Run {
     pub parts: Vec<PartStats>,
     pub windows: Vec<Window>,
     pub tracks: PartTracks,
+    /// Geometry of every part's model at the end of the recording.
+    pub geometry: BTreeMap<u32, PartGeometry>,
     pub updates: Vec<Update>,
     /// The posterior after the last window.
     pub posterior: Option<Posterior>,
@@ -113,7 +116,9 @@ pub fn replay(bags: &[PathBuf], cfg: &Config) -> Result<Run, ReplayError> {
 
     pb.set_message("perception");
     let t = Instant::now();
-    let tracks = Perception::new(cfg.perception.clone()).observe_all(&recording.clouds);
+    let mut perception = Perception::new(cfg.perception.clone());
+    let tracks = perception.observe_all(&recording.clouds);
+    let geometry = perception.geometry();
     timing.perception = t.elapsed();
 
     pb.set_message("windows");
@@ -122,13 +127,17 @@ pub fn replay(bags: &[PathBuf], cfg: &Config) -> Result<Run, ReplayError> {
     let windows = find_windows(&recording, &tracks, cfg, &mut diag);
     timing.windows = t.elapsed();
 
+    let springs = ground_truth.as_ref().map(declared_springs).unwrap_or_default();
     let t = Instant::now();
     let mut updates = Vec::new();
+    let mut warm = None;
     for w in 0..windows.len() {
         pb.set_message(format!("BOM-SVI after window {}/{}", w + 1, windows.len()));
-        let ev = Evidence::new(&tracks, &windows[..=w], cfg.inference.min_dt_s, cfg.inference.min_frames, cfg.inference.max_frames);
-        if let Some(posterior) = svi::fit(&ev, &cfg.model, &cfg.inference) {
-            updates.push(Update { stamp: windows[w].end, num_windows: w + 1, posterior });
+        let wr: &[input::WrenchSample] = if std::env::var_os("BOM_KIN").is_some() { &[] } else { &recording.wrenches };
+        let ev = Evidence::new(&tracks, &geometry, &windows[..=w], wr, &springs, &grid(cfg));
+        if let Some(fitted) = svi::fit(&ev, &cfg.model, &cfg.inference, warm.as_ref()) {
+            updates.push(Update { stamp: windows[w].end, num_windows: w + 1, posterior: fitted.posterior });
+            warm = Some(fitted.guide);
         }
     }
     timing.inference = t.elapsed();
@@ -144,7 +153,30 @@ pub fn replay(bags: &[PathBuf], cfg: &Config) -> Result<Run, ReplayError> {
         .collect();
     let posterior = updates.last().map(|u| u.posterior.clone());
     timing.total = t0.elapsed();
-    Ok(Run { bags: bags.to_vec(), mode, parts, windows, tracks, updates, posterior, ground_truth, diagnostics: diag, timing })
+    Ok(Run { bags: bags.to_vec(), mode, parts, windows, tracks, geometry, updates, posterior, ground_truth, diagnostics: diag, timing })
+}
+
+/// The evidence grid of the configuration.
+pub fn grid(cfg: &Config) -> Grid {
+    Grid {
+        min_dt_s: cfg.inference.min_dt_s,
+        min_frames: cfg.inference.min_frames,
+        max_frames: cfg.inference.max_frames,
+        step_s: cfg.model.dynamics.step_s,
+        contact_range_m: cfg.perception.contact_range_m,
+        voxel_m: cfg.perception.voxel_m,
+    }
+}
+
+/// Labels of the parts on which the recording declares a spring (contract section 3, `effects`):
+/// declared effects are part of the model from the start; undeclared ones are for model criticism
+/// to find.
+pub fn declared_springs(gt: &GroundTruth) -> Vec<u32> {
+    gt.effects
+        .iter()
+        .filter(|e| e.get("kind").and_then(|k| k.as_str()) == Some("spring"))
+        .filter_map(|e| e.get("part").and_then(|p| p.as_u64()).map(|p| p as u32))
+        .collect()
 }
 
 fn find_windows(rec: &Recording, tracks: &PartTracks, cfg: &Config, diag: &mut Diagnostics) -> Vec<Window> {

@@ -164,12 +164,10 @@ mod tests {
     fn obs(t: f64, x: f64) -> PartObservation {
         PartObservation {
             stamp: t,
+            pose: nalgebra::Isometry3::translation(x, 0.0, 0.0),
             com: Point3::new(x, 0.0, 0.0),
-            com_sd: 0.001,
-            orientation: None,
-            orientation_sd: f64::NAN,
-            normal: None,
-            normal_sd: f64::NAN,
+            pose_cov: nalgebra::Matrix6::identity() * 1e-6,
+            matched: 1.0,
             points: 10,
             outliers: 0,
         }

@@ -83,17 +83,15 @@ fn every_bag_decodes_and_every_push_moves_its_part() {
             let pushed = w.pushed_part.unwrap_or_else(|| panic!("{name}: window {w:?} without a pushed part"));
             let gt_part = gt.parts.iter().find(|p| p.label == pushed).unwrap();
             assert_ne!(gt_part.joint, "rigid", "{name}: pushed part {pushed} is rigid");
-            // The pushed part moves at least 5 cm (its centre) or 15 degrees (its surface normal).
+            // The pushed part moves at least 3 cm (a material point) or turns 5 degrees (a door
+            // pushed against a spring turns least: 7.5 degrees in MuJoCo's own record).
             let obs: Vec<_> = run.tracks[&pushed].iter().filter(|o| w.contains(o.stamp)).collect();
             let first = obs.first().unwrap();
             let moved = obs.iter().map(|o| (o.com - first.com).norm()).fold(0.0, f64::max);
-            let turned = obs
-                .iter()
-                .filter_map(|o| Some(o.normal?.angle(&first.normal?).to_degrees()))
-                .fold(0.0, f64::max);
-            // Rotation counts for revolute joints only: a flat part's normal can flip sign in noise.
+            let turned = obs.iter().map(|o| first.pose.rotation.angle_to(&o.pose.rotation).to_degrees()).fold(0.0, f64::max);
+            // Rotation counts for revolute joints only.
             let turned = if gt_part.joint == "revolute" { turned } else { 0.0 };
-            assert!(moved >= 0.05 || turned >= 15.0, "{name}: part {pushed} moved {moved:.3} m, turned {turned:.1} deg in {w:?}");
+            assert!(moved >= 0.03 || turned >= 5.0, "{name}: part {pushed} moved {moved:.3} m, turned {turned:.1} deg in {w:?}");
             println!("{name:36} part {pushed}: moved {moved:.3} m, turned {turned:5.1} deg");
             // Static parts stay within noise: their surfaces at the start and the end coincide.
             // Static parts stay within noise: the surface after the push is shifted from the one

@@ -1,10 +1,12 @@
 //! Inference stage: posterior over the Bayesian object model given the evidence (paper §3.4).
 //!
-//! [`svi`] is BOM-SVI. Inference is separate from the model ([`crate::model`]) and returns a
-//! [`Posterior`], a summary that later stages (criticism, output) read without knowing how it
-//! was obtained.
+//! [`svi`] is BOM-SVI with the guide of [`guide`]. Inference is separate from the model
+//! ([`crate::model`]) and returns a [`Posterior`], a summary that later stages (criticism,
+//! output) read without knowing how it was obtained.
 
 pub mod adam;
+pub mod guide;
+pub mod summary;
 pub mod svi;
 
 use nalgebra::Vector3;
@@ -20,10 +22,31 @@ pub struct AxisSummary {
     pub direction: Vector3<f64>,
     /// Root-mean-square angle of posterior samples to `direction` \[deg\].
     pub direction_sd_deg: f64,
+    /// 90% quantile of that angle: the radius of the 90% credible cone around `direction` \[deg\].
+    pub direction_q90_deg: f64,
     /// Revolute: posterior mean of the axis point closest to the part's centre of mass \[m\].
     pub point: Option<Vector3<f64>>,
     /// Root-mean-square distance of sampled points to `point` \[m\] (NaN when no point).
     pub point_sd_m: f64,
+}
+
+/// Posterior summary of one positive scalar parameter (its SI unit).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Estimate {
+    pub median: f64,
+    pub sd: f64,
+    /// 5% and 95% quantiles: the 90% credible interval.
+    pub q05: f64,
+    pub q95: f64,
+}
+
+/// Kinodynamic parameters of a joint (dynamic mode): viscous damping (N·s/m or N·m·s/rad),
+/// Coulomb friction (N or N·m), mass of the child part (kg).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Kinodynamics {
+    pub damping: Estimate,
+    pub friction: Estimate,
+    pub mass: Estimate,
 }
 
 /// Posterior of the joint attaching one part.
@@ -42,6 +65,8 @@ pub struct JointSummary {
     pub map_type: JointType,
     /// Axis of the more probable movable type (its `joint` says which).
     pub axis: Option<AxisSummary>,
+    /// Kinodynamics of the same type (dynamic mode only).
+    pub kinodynamics: Option<Kinodynamics>,
     /// Guide-mean physical parameters per joint type (rigid, prismatic, revolute).
     pub mean_params: [JointParams<f64>; 3],
     /// Guide-mean joint coordinates per type on the evidence grid [m of path].

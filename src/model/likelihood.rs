@@ -1,34 +1,94 @@
 //! The observation model and the prior on joint coordinates.
 //!
-//! - [`Evidence`]: the observed part centres of mass on a common time grid (all cloud frames inside
-//!   the interaction windows, evenly thinned to at most `max_frames`), with their perception sd.
-//! - [`log_likelihood_point`]: the Gaussian likelihood of eq. 2 for one part and frame, with
-//!   inverse variance `beta = 1 / (sigma^2 + sd_perception^2)`, sigma inferred; where perception gives a
-//!   part's surface normal, [`log_likelihood_normal`] adds the rotation it shows.
+//! - [`Evidence`]: the observed part poses on a common time grid (cloud frames inside the
+//!   interaction windows, thinned), as the position of each part's centre of mass and its rotation,
+//!   with their perception covariances.
+//! - [`log_likelihood_position`]: the Gaussian likelihood of eq. 2 for one part's centre of mass
+//!   and frame, covariance `Sigma_perception + sigma^2 I` with `sigma` inferred;
+//!   [`log_likelihood_rotation`] adds the rotation about each axis the part's shape makes
+//!   observable, with variance `sd_perception^2 + sigma_r^2`, `sigma_r` inferred too.
 //! - [`coordinate_prior`]: the expected log random-walk prior of a joint-coordinate chain under a
 //!   mean-field Gaussian guide, analytic with its gradient.
 
 use std::collections::BTreeMap;
 
-use nalgebra::Vector3;
+use nalgebra::{Isometry3, Matrix3, Vector3};
 
 use super::{c, ModelConfig, Real};
-use crate::perception::PartTracks;
+use crate::input::WrenchSample;
+use crate::perception::{PartGeometry, PartObservation, PartTracks};
 use crate::windows::Window;
+
+/// A position observation: the centre of mass \[m\] (fixed frame) and its perception covariance
+/// as eigenvectors (columns of `basis`) and variances \[m²\].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PositionObs {
+    pub y: Vector3<f64>,
+    pub basis: Matrix3<f64>,
+    pub var: Vector3<f64>,
+}
+
+/// A rotation observation: the part's rotation since the reference frame (fixed frame) and, per
+/// observable axis (unit, fixed frame, at this frame), the perception variance \[rad²\].
+#[derive(Debug, Clone, PartialEq)]
+pub struct RotationObs {
+    pub r: Matrix3<f64>,
+    pub axes: Vec<(Vector3<f64>, f64)>,
+}
 
 /// One part's observations on the grid.
 #[derive(Debug, Clone)]
 pub struct PartSeries {
     /// Part label (>= 1).
     pub label: u32,
-    /// Perceived reference centre of mass \[m\] (first observation in the windows).
+    /// Perceived centre of mass in the reference configuration (the first grid frame in which
+    /// the part is seen) \[m\].
     pub com0: Vector3<f64>,
-    /// Per grid frame: observed centre of mass \[m\] and its perception sd \[m\], or None (occluded).
-    pub obs: Vec<Option<(Vector3<f64>, f64)>>,
-    /// Surface normal at the reference frame (grid frame of the first observation), if the
-    /// part's clouds define one there; then `normals` holds the observed normals and their sd \[rad\].
-    pub normal0: Option<Vector3<f64>>,
-    pub normals: Vec<Option<(Vector3<f64>, f64)>>,
+    /// Per grid frame: the observed centre of mass, or None (not seen).
+    pub obs: Vec<Option<PositionObs>>,
+    /// Per grid frame: the observed rotation, where the part's shape makes one observable.
+    pub rot: Vec<Option<RotationObs>>,
+    /// Root-mean-square radius of the part about its centre of mass \[m\].
+    pub radius: f64,
+    /// Rotational inertia about the centre of mass per kilogram (m²), fixed frame, reference
+    /// configuration; and the hull volume (m³, 0 when flat).
+    pub unit_inertia: Matrix3<f64>,
+    pub volume: f64,
+}
+
+/// How the evidence grid is built from the cloud stamps (see [`Evidence::new`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Grid {
+    /// Least time between grid frames \[s\], unless a window would then keep fewer than
+    /// `min_frames`; and the most grid frames.
+    pub min_dt_s: f64,
+    pub min_frames: usize,
+    pub max_frames: usize,
+    /// Integration step of the physics in dynamic mode \[s\].
+    pub step_s: f64,
+    /// Surface points closer than this to another part count as touching it \[m\]; each model
+    /// point stands for a `voxel_m` square of surface.
+    pub contact_range_m: f64,
+    pub voxel_m: f64,
+}
+
+/// One interaction window in dynamic mode: its grid frames and the measured wrench resampled on
+/// the physics' integration steps, which start at the window's first grid frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct WindowEvidence {
+    /// Grid frames of the window, in time order.
+    pub frames: Vec<usize>,
+    /// Integration step at the stamp of each of `frames` (0 for the first).
+    pub frame_substep: Vec<usize>,
+    /// The pushed part (index into [`Evidence::parts`]), if known.
+    pub pushed: Option<usize>,
+    /// Integration step \[s\].
+    pub h: f64,
+    /// Per integration step: force \[N\], torque \[N·m\] and point of application \[m\], fixed frame
+    /// (linearly interpolated between wrench stamps, zero outside them).
+    pub force: Vec<Vector3<f64>>,
+    pub torque: Vec<Vector3<f64>>,
+    pub point: Vec<Vector3<f64>>,
 }
 
 /// Observations of all parts on a common time grid.
@@ -40,6 +100,15 @@ pub struct Evidence {
     pub window_start: Vec<bool>,
     /// Parts in label order.
     pub parts: Vec<PartSeries>,
+    /// Contact area between parts `i` and `k` \[m²\] (contact prior on trees): the surface of
+    /// each part's model within `contact_range` of the other's, averaged over both directions, at
+    /// the first grid frame in which both are seen; 0 if never seen together.
+    pub contact: Vec<Vec<f64>>,
+    /// Dynamic mode: the windows with their wrenches (empty in kinematic mode).
+    pub windows: Vec<WindowEvidence>,
+    /// Per part: whether the recording declares a spring on its joint (`bom_ground_truth`
+    /// effects), which the physics then includes with its parameters inferred.
+    pub springs: Vec<bool>,
 }
 
 impl Evidence {
@@ -56,7 +125,18 @@ impl Evidence {
     ///
     /// A short window would keep too few frames that way: the spacing in each window is at most
     /// its duration / `min_frames`.
-    pub fn new(tracks: &PartTracks, windows: &[Window], min_dt: f64, min_frames: usize, max_frames: usize) -> Evidence {
+    ///
+    /// With wrenches (dynamic mode), each window's measured wrench is resampled on the physics'
+    /// integration steps; `springs` lists the labels of parts with a declared spring.
+    pub fn new(
+        tracks: &PartTracks,
+        geometry: &BTreeMap<u32, PartGeometry>,
+        windows: &[Window],
+        wrenches: &[WrenchSample],
+        springs: &[u32],
+        grid: &Grid,
+    ) -> Evidence {
+        let (min_dt, min_frames, max_frames) = (grid.min_dt_s, grid.min_frames, grid.max_frames);
         let mut stamps: BTreeMap<u64, usize> = BTreeMap::new();
         let key = |t: f64| (t * 1e9).round() as u64;
         for obs in tracks.values() {
@@ -93,25 +173,66 @@ impl Evidence {
             .map(|i| i == 0 || window_of(times[i]) != window_of(times[i - 1]))
             .collect();
         let mut parts = Vec::new();
+        // Surface points of each part at each grid frame it is seen in, for the contact distances.
+        let mut surfaces: Vec<Vec<Option<Isometry3<f64>>>> = Vec::new();
+        let mut models: Vec<&[Vector3<f64>]> = Vec::new();
         for (&label, obs) in tracks {
+            let Some(geo) = geometry.get(&label) else { continue };
+            let seen: Vec<(usize, &PartObservation)> =
+                obs.iter().filter_map(|o| index.get(&key(o.stamp)).map(|&i| (i, o))).collect();
+            let Some(&(_, first)) = seen.first() else { continue };
+            // The model's reference configuration is the part's pose at its first grid frame.
+            let r0 = first.pose.rotation.to_rotation_matrix().into_inner();
             let mut series = vec![None; times.len()];
-            let mut normals = vec![None; times.len()];
-            for o in obs {
-                if let Some(&i) = index.get(&key(o.stamp)) {
-                    series[i] = Some((o.com.coords, o.com_sd));
-                    normals[i] = o.normal.map(|n| (n, o.normal_sd));
+            let mut rot = vec![None; times.len()];
+            for &(i, o) in &seen {
+                let y = (o.pose * nalgebra::Point3::from(geo.com)).coords;
+                let e = o.position_cov(&geo.com).symmetric_eigen();
+                series[i] = Some(PositionObs { y, basis: e.eigenvectors, var: e.eigenvalues.map(|v| v.max(0.0)) });
+                if !geo.rotation_axes.is_empty() {
+                    let r = o.pose.rotation.to_rotation_matrix().into_inner();
+                    let cov = o.rotation_cov();
+                    let axes = geo.rotation_axes.iter().map(|a| {
+                        let a = r * a;
+                        (a, (a.transpose() * cov * a)[0].max(0.0))
+                    });
+                    rot[i] = Some(RotationObs { r: r * r0.transpose(), axes: axes.collect() });
                 }
             }
-            if let Some(first) = series.iter().position(|o| o.is_some()) {
-                let com0 = series[first].expect("observed").0;
-                let normal0 = normals[first].map(|n| n.0);
-                if normal0.is_none() {
-                    normals.iter_mut().for_each(|n| *n = None);
-                }
-                parts.push(PartSeries { label, com0, obs: series, normal0, normals });
+            let com0 = series.iter().flatten().next().map(|o: &PositionObs| o.y).expect("seen");
+            let mut poses = vec![None; times.len()];
+            for &(i, o) in &seen {
+                poses[i] = Some(o.pose);
             }
+            surfaces.push(poses);
+            models.push(&geo.points);
+            parts.push(PartSeries {
+                label,
+                com0,
+                obs: series,
+                rot,
+                radius: geo.radius.max(1e-3),
+                unit_inertia: r0 * geo.unit_inertia * r0.transpose(),
+                volume: geo.volume,
+            });
         }
-        Evidence { times, window_start, parts }
+        let contact = contact_areas(&surfaces, &models, grid.contact_range_m, grid.voxel_m);
+        let labels: Vec<u32> = parts.iter().map(|p| p.label).collect();
+        let dynamic = if wrenches.is_empty() {
+            Vec::new()
+        } else {
+            windows
+                .iter()
+                .enumerate()
+                .filter_map(|(w, win)| {
+                    let frames: Vec<usize> = (0..times.len()).filter(|&i| window_of(times[i]) == Some(w)).collect();
+                    let pushed = win.pushed_part.and_then(|l| labels.iter().position(|&x| x == l));
+                    window_evidence(&times, frames, pushed, wrenches, grid.step_s)
+                })
+                .collect()
+        };
+        let springs = labels.iter().map(|l| springs.contains(l)).collect();
+        Evidence { times, window_start, parts, contact, windows: dynamic, springs }
     }
 
     /// Number of grid frames.
@@ -124,31 +245,181 @@ impl Evidence {
     }
 }
 
-/// `log N(y; x, (sigma^2 + sd^2) I_3)` for one part and frame (eq. 2).
-#[inline]
-pub fn log_likelihood_point<T: Real>(y: &Vector3<f64>, x: &Vector3<T>, sigma: T, sd: f64) -> T {
-    let var = sigma * sigma + sd * sd;
-    let d = Vector3::new(c::<T>(y.x) - x.x, c::<T>(y.y) - x.y, c::<T>(y.z) - x.z);
-    -(d.dot(&d)) / (var * 2.0) - (var * (2.0 * std::f64::consts::PI)).ln() * 1.5
+/// A window's wrench on the integration steps from its first grid frame to its last.
+fn window_evidence(times: &[f64], frames: Vec<usize>, pushed: Option<usize>, wrenches: &[WrenchSample], h: f64) -> Option<WindowEvidence> {
+    let (&first, &last) = (frames.first()?, frames.last()?);
+    if frames.len() < 2 || h <= 0.0 {
+        return None;
+    }
+    let t0 = times[first];
+    let frame_substep: Vec<usize> = frames.iter().map(|&f| ((times[f] - t0) / h).round() as usize).collect();
+    let n = ((times[last] - t0) / h).round() as usize + 1;
+    let (mut force, mut torque, mut point) = (Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n));
+    let mut j = 0;
+    for s in 0..n {
+        let t = t0 + s as f64 * h;
+        while j + 1 < wrenches.len() && wrenches[j + 1].stamp <= t {
+            j += 1;
+        }
+        let (a, b) = (&wrenches[j], wrenches.get(j + 1));
+        let sample = match b {
+            Some(b) if a.stamp <= t && t <= b.stamp && b.stamp > a.stamp => {
+                let u = (t - a.stamp) / (b.stamp - a.stamp);
+                Some((a.force.lerp(&b.force, u), a.torque.lerp(&b.torque, u), a.point.coords.lerp(&b.point.coords, u)))
+            }
+            _ if (a.stamp - t).abs() < 1e-9 => Some((a.force, a.torque, a.point.coords)),
+            _ => None,
+        };
+        let (f, tq, p) = sample.unwrap_or((Vector3::zeros(), Vector3::zeros(), a.point.coords));
+        force.push(f);
+        torque.push(tq);
+        point.push(p);
+    }
+    Some(WindowEvidence { frames, frame_substep, pushed, h, force, torque, point })
 }
 
-/// `log N(n_obs; n_pred, sd^2 I_2)`: a surface normal observed with angular sd `sd` \[rad\]
-/// (small-angle Gaussian on the sphere, two degrees of freedom).
+/// Contact areas between the parts' surfaces (model points moved by their poses) at the first grid
+/// frame in which both parts of a pair are seen: the number of model points of one part within
+/// `range` of the other's, times the surface each point stands for, averaged over both directions.
+fn contact_areas(poses: &[Vec<Option<Isometry3<f64>>>], models: &[&[Vector3<f64>]], range: f64, voxel: f64) -> Vec<Vec<f64>> {
+    use kiddo::{KdTree, SquaredEuclidean};
+    let n = poses.len();
+    let tree_of = |pose: &Isometry3<f64>, pts: &[Vector3<f64>]| {
+        let mut tree: KdTree<f64, 3> = KdTree::new();
+        let mut seen = std::collections::HashSet::new();
+        for (j, p) in pts.iter().enumerate() {
+            let x = pose * nalgebra::Point3::from(*p);
+            if seen.insert((x.x.to_bits(), x.y.to_bits(), x.z.to_bits())) {
+                tree.add(&[x.x, x.y, x.z], j as u64);
+            }
+        }
+        tree
+    };
+    let near = |tree: &KdTree<f64, 3>, pose: &Isometry3<f64>, pts: &[Vector3<f64>]| {
+        pts.iter()
+            .filter(|p| {
+                let x = pose * nalgebra::Point3::from(**p);
+                tree.nearest_one::<SquaredEuclidean>(&[x.x, x.y, x.z]).distance <= range * range
+            })
+            .count()
+    };
+    let mut a = vec![vec![0.0; n]; n];
+    for i in 0..n {
+        for k in i + 1..n {
+            let both = (0..poses[i].len()).find_map(|t| Some((poses[i][t]?, poses[k][t]?)));
+            let area = match both {
+                Some((pi, pk)) if !models[i].is_empty() && !models[k].is_empty() => {
+                    let (ti, tk) = (tree_of(&pi, models[i]), tree_of(&pk, models[k]));
+                    0.5 * (near(&tk, &pi, models[i]) + near(&ti, &pk, models[k])) as f64 * voxel * voxel
+                }
+                _ => 0.0,
+            };
+            a[i][k] = area;
+            a[k][i] = area;
+        }
+    }
+    a
+}
+
+/// `ln Gamma(x)` for `x > 0` (Lanczos, g = 7, 9 terms; relative error below 1e-13).
+fn ln_gamma(x: f64) -> f64 {
+    const G: [f64; 9] = [
+        0.999_999_999_999_809_9,
+        676.520_368_121_885_1,
+        -1_259.139_216_722_402_8,
+        771.323_428_777_653_1,
+        -176.615_029_162_140_6,
+        12.507_343_278_686_905,
+        -0.138_571_095_265_720_12,
+        9.984_369_578_019_572e-6,
+        1.505_632_735_149_311_6e-7,
+    ];
+    if x < 0.5 {
+        return (std::f64::consts::PI / (std::f64::consts::PI * x).sin()).ln() - ln_gamma(1.0 - x);
+    }
+    let x = x - 1.0;
+    let t = x + 7.5;
+    let a = G.iter().enumerate().skip(1).fold(G[0], |acc, (i, g)| acc + g / (x + i as f64));
+    0.5 * (2.0 * std::f64::consts::PI).ln() + (x + 0.5) * t.ln() - t + a.ln()
+}
+
+/// Log-density of a `dim`-variate Student-t with `nu` degrees of freedom (Gaussian when `nu` is
+/// infinite or 0) at squared Mahalanobis distance `m2`, with `half_log_det = 0.5 log |Sigma|`.
 #[inline]
-pub fn log_likelihood_normal<T: Real>(n_obs: &Vector3<f64>, n_pred: &Vector3<T>, sd: f64) -> T {
-    let d = Vector3::new(c::<T>(n_obs.x) - n_pred.x, c::<T>(n_obs.y) - n_pred.y, c::<T>(n_obs.z) - n_pred.z);
-    -(d.dot(&d)) / (2.0 * sd * sd) - c::<T>((2.0 * std::f64::consts::PI * sd * sd).ln())
+fn log_student<T: Real>(m2: T, half_log_det: T, dim: usize, nu: f64) -> T {
+    let d = dim as f64;
+    if !(nu.is_finite() && nu > 0.0) {
+        return -(m2 * 0.5) - half_log_det - c::<T>(0.5 * d * (2.0 * std::f64::consts::PI).ln());
+    }
+    let norm = ln_gamma(0.5 * (nu + d)) - ln_gamma(0.5 * nu) - 0.5 * d * (nu * std::f64::consts::PI).ln();
+    -((m2 / nu + 1.0).ln() * (0.5 * (nu + d))) - half_log_det + norm
+}
+
+/// Log-likelihood of one part's centre of mass in one frame (eq. 2): covariance
+/// `Sigma + sigma^2 I`, with the perception covariance `Sigma` given by its eigen-decomposition.
+/// With `nu` finite, a multivariate Student-t with that covariance scale: the paper's Gaussian
+/// when perception errs like Gaussian noise, but a registration that slips for a few frames
+/// (depth images err in bursts) costs logarithmically instead of quadratically, and cannot force
+/// a joint onto a static part.
+#[inline]
+pub fn log_likelihood_position<T: Real>(o: &PositionObs, x: &Vector3<T>, sigma: T, nu: f64) -> T {
+    let s2 = sigma * sigma;
+    let d = Vector3::new(c::<T>(o.y.x) - x.x, c::<T>(o.y.y) - x.y, c::<T>(o.y.z) - x.z);
+    let (mut m2, mut hld) = (c::<T>(0.0), c::<T>(0.0));
+    for k in 0..3 {
+        let b = o.basis.column(k);
+        let dk = d.x * b.x + d.y * b.y + d.z * b.z;
+        let var = s2 + o.var[k];
+        m2 += dk * dk / var;
+        hld += var.ln() * 0.5;
+    }
+    log_student(m2, hld, 3, nu)
+}
+
+/// Log-likelihood of a part's observed rotation given its predicted rotation `r` (fixed frame):
+/// the rotation vector of the error `r R_obs^T` (its skew part, exact for small errors and
+/// bounded for large ones) projected on each observable axis, variance `sd^2 + sigma_r^2` per
+/// axis, Student-t with `nu` degrees of freedom as for positions.
+#[inline]
+pub fn log_likelihood_rotation<T: Real>(o: &RotationObs, r: &Matrix3<T>, sigma_r: T, nu: f64) -> T {
+    if o.axes.is_empty() {
+        return c(0.0);
+    }
+    let ro = o.r.map(c::<T>);
+    let e = r * ro.transpose();
+    let w = Vector3::new(e[(2, 1)] - e[(1, 2)], e[(0, 2)] - e[(2, 0)], e[(1, 0)] - e[(0, 1)]).map(|v| v * 0.5);
+    let s2 = sigma_r * sigma_r;
+    let (mut m2, mut hld) = (c::<T>(0.0), c::<T>(0.0));
+    for (a, v) in &o.axes {
+        let wk = w.x * a.x + w.y * a.y + w.z * a.z;
+        let var = s2 + *v;
+        m2 += wk * wk / var;
+        hld += var.ln() * 0.5;
+    }
+    log_student(m2, hld, o.axes.len(), nu)
 }
 
 /// Expected log prior `E_q[log p(q)]` of a joint-coordinate chain and its gradient with respect
 /// to the guide means `m` and sds `s`.
 ///
-/// Prior: `q_0 = 0` (gauge: the reference configuration is the first grid frame), the first frame
-/// of every later window `~ N(0, window_start_sd_m^2)`, and within a window increments
-/// `q_k - q_{k-1} ~ N(0, (velocity_sd_mps * dt_k)^2)`. `m[0]` and `s[0]` are ignored.
-pub fn coordinate_prior(ev: &Evidence, m: &[f64], s: &[f64], cfg: &ModelConfig) -> (f64, Vec<f64>, Vec<f64>) {
+/// Prior (kinematic mode): `q_0 = 0` (gauge: the reference configuration is the first grid
+/// frame), the first frame of every later window `~ N(0, window_start_sd_m^2)`, and within a
+/// window increments `q_k - q_{k-1} ~ N(0, (v * dt_k)^2)`. The velocity scale `v` is itself
+/// latent, `v = velocity_sd_mps * exp(velocity_log_sd * xi_v)` with `xi_v ~ N(0, 1)` and, in the
+/// guide, `xi_v ~ N(vm, vs^2)`: a joint that barely moved is a joint with a small velocity scale,
+/// not a joint that beat the odds of a fast random walk in every frame — with a fixed scale the
+/// per-frame Occam factor declared such a part rigid with certainty. In dynamic mode the physics
+/// prior ([`super::dynamics`]) takes the place of all of this. `m[0]` and `s[0]` are ignored.
+///
+/// Returns the value and its gradients with respect to `m`, `s`, `vm` and `vs`.
+pub fn coordinate_prior(ev: &Evidence, m: &[f64], s: &[f64], vm: f64, vs: f64, cfg: &ModelConfig) -> (f64, Vec<f64>, Vec<f64>, f64, f64) {
     let n = ev.len();
     let (mut v, mut gm, mut gs) = (0.0, vec![0.0; n], vec![0.0; n]);
+    let l = cfg.velocity_log_sd;
+    // E[1 / v^2] and E[log v] under the guide of xi_v.
+    let inv_v2 = (-2.0 * l * vm + 2.0 * l * l * vs * vs).exp() / cfg.velocity_sd_mps.powi(2);
+    let log_v = cfg.velocity_sd_mps.ln() + l * vm;
+    let (mut g_vm, mut g_vs) = (0.0, 0.0);
     let ln2pi = (2.0 * std::f64::consts::PI).ln();
     let mm = |k: usize| if k == 0 { 0.0 } else { m[k] };
     let ss = |k: usize| if k == 0 { 0.0 } else { s[k] };
@@ -160,16 +431,20 @@ pub fn coordinate_prior(ev: &Evidence, m: &[f64], s: &[f64], cfg: &ModelConfig) 
             gs[k] -= ss(k) / var;
         } else {
             let dt = (ev.times[k] - ev.times[k - 1]).max(1e-3);
-            let var = (cfg.velocity_sd_mps * dt).powi(2);
+            // 1 / var = E[1 / v^2] / dt^2 and log var = 2 (E[log v] + log dt).
+            let inv_var = inv_v2 / (dt * dt);
             let d = mm(k) - mm(k - 1);
-            v += -(d * d + ss(k).powi(2) + ss(k - 1).powi(2)) / (2.0 * var) - 0.5 * (var.ln() + ln2pi);
-            gm[k] -= d / var;
-            gm[k - 1] += d / var;
-            gs[k] -= ss(k) / var;
-            gs[k - 1] -= ss(k - 1) / var;
+            let sq = d * d + ss(k).powi(2) + ss(k - 1).powi(2);
+            v += -sq * inv_var / 2.0 - (log_v + dt.ln()) - 0.5 * ln2pi;
+            gm[k] -= d * inv_var;
+            gm[k - 1] += d * inv_var;
+            gs[k] -= ss(k) * inv_var;
+            gs[k - 1] -= ss(k - 1) * inv_var;
+            g_vm += sq * inv_var * l - l;
+            g_vs -= sq * inv_var * 2.0 * l * l * vs;
         }
     }
     gm[0] = 0.0;
     gs[0] = 0.0;
-    (v, gm, gs)
+    (v, gm, gs, g_vm, g_vs)
 }

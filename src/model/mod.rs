@@ -14,6 +14,7 @@
 //! code runs on `f64` and on `num-dual` dual numbers (tests check the gradients against finite
 //! differences).
 
+pub mod dynamics;
 pub mod likelihood;
 pub mod physics;
 pub mod prismatic;
@@ -70,7 +71,7 @@ impl JointType {
     }
 
     /// Number of standardised global parameters of this joint type (the layout is documented in
-    /// each joint's file; the first four are always the reference centre of mass and the noise).
+    /// each joint's file; the first five are always the reference centre of mass and the noises).
     pub fn num_params(self) -> usize {
         match self {
             JointType::Rigid => rigid::NUM_PARAMS,
@@ -96,16 +97,29 @@ pub struct ModelConfig {
     pub noise_median_m: f64,
     /// Log-sd of that prior.
     pub noise_log_sd: f64,
+    /// Degrees of freedom of the Student-t observation noise (0: Gaussian, the paper's eq. 2).
+    pub student_nu: f64,
+    /// Median and log-sd of the log-normal prior on the rotation noise \[rad\].
+    pub rotation_noise_median_rad: f64,
+    pub rotation_noise_log_sd: f64,
     /// Prior sd of a revolute axis point around the part's reference centre of mass \[m\].
     pub axis_point_sd_m: f64,
-    /// Velocity scale of the random-walk prior on joint coordinates [m/s of centre-of-mass path].
+    /// Median and log-sd of the log-normal prior on the velocity scale of the random-walk prior
+    /// on joint coordinates (kinematic mode) [m/s of centre-of-mass path].
     pub velocity_sd_mps: f64,
+    pub velocity_log_sd: f64,
     /// Prior sd of the first joint coordinate of every window after the first \[m\].
     pub window_start_sd_m: f64,
     /// Minimum effective radius of a revolute joint, so `angle = path / radius` stays finite \[m\].
     pub min_radius_m: f64,
     /// Prior probabilities of rigid, prismatic, revolute.
     pub type_prior: [f64; 3],
+    /// Contact prior on trees ([`tree`]): the contact area the fixed frame counts as, and the
+    /// least weight of a part \[m²\].
+    pub contact_world_m2: f64,
+    pub contact_min_m2: f64,
+    /// Dynamic mode (wrenches recorded): kinodynamic priors and integration.
+    pub dynamics: dynamics::DynamicsConfig,
 }
 
 impl Default for ModelConfig {
@@ -114,11 +128,18 @@ impl Default for ModelConfig {
             com_sd_m: 0.02,
             noise_median_m: 0.005,
             noise_log_sd: 1.0,
+            student_nu: 4.0,
+            rotation_noise_median_rad: 0.02,
+            rotation_noise_log_sd: 1.0,
             axis_point_sd_m: 0.3,
             velocity_sd_mps: 0.5,
+            velocity_log_sd: 1.5,
             window_start_sd_m: 1.0,
             min_radius_m: 0.02,
             type_prior: [1.0 / 3.0; 3],
+            contact_world_m2: 0.0002,
+            contact_min_m2: 1e-5,
+            dynamics: dynamics::DynamicsConfig::default(),
         }
     }
 }
@@ -159,8 +180,10 @@ pub struct JointParams<T: Real> {
     pub joint: JointType,
     /// Reference centre of mass of the child part \[m\].
     pub com: Vector3<T>,
-    /// Observation noise sd \[m\].
+    /// Position noise sd \[m\].
     pub noise: T,
+    /// Rotation noise sd \[rad\].
+    pub rot_noise: T,
     /// Unit axis direction (prismatic, revolute).
     pub direction: Vector3<T>,
     /// A point on the axis \[m\] (revolute).
@@ -178,7 +201,8 @@ pub fn decode<T: Real>(joint: JointType, xi: &[T], com0: &Vector3<f64>, cfg: &Mo
         c::<T>(com0.z) + xi[2] * cfg.com_sd_m,
     );
     let noise = (xi[3] * cfg.noise_log_sd).exp() * cfg.noise_median_m;
-    let base = JointParams { joint, com, noise, direction: Vector3::zeros(), point: com, radius: c(0.0) };
+    let rot_noise = (xi[4] * cfg.rotation_noise_log_sd).exp() * cfg.rotation_noise_median_rad;
+    let base = JointParams { joint, com, noise, rot_noise, direction: Vector3::zeros(), point: com, radius: c(0.0) };
     match joint {
         JointType::Rigid => base,
         JointType::Prismatic => prismatic::decode(base, &xi[rigid::NUM_PARAMS..]),
@@ -193,6 +217,19 @@ pub fn displacement<T: Real>(p: &JointParams<T>, q: T) -> Displacement<T> {
         JointType::Rigid => Displacement::identity(),
         JointType::Prismatic => prismatic::displacement(p, q),
         JointType::Revolute => revolute::displacement(p, q),
+    }
+}
+
+/// `tanh(x)` that stays finite for any argument: num-dual computes `sinh / cosh`, which is
+/// `inf / inf` beyond |x| ≈ 710 (a fast joint against a 0.01 rad/s friction scale gets there).
+#[inline]
+pub fn tanh<T: Real>(x: T) -> T {
+    if x.re() >= 0.0 {
+        let e = (x * -2.0).exp();
+        (c::<T>(1.0) - e) / (c::<T>(1.0) + e)
+    } else {
+        let e = (x * 2.0).exp();
+        (e - 1.0) / (e + 1.0)
     }
 }
 
@@ -234,7 +271,7 @@ mod tests {
     fn tracking_inverts_the_displacement() {
         let cfg = ModelConfig::default();
         let com0 = Vector3::new(0.3, -0.2, 0.9);
-        let xi = [0.1, -0.2, 0.3, 0.0, 0.4, 2.0, 1.0, 0.3, -0.5, 0.2];
+        let xi = [0.1, -0.2, 0.3, 0.0, 0.0, 0.4, 2.0, 1.0, 0.3, -0.5, 0.2];
         for joint in [JointType::Prismatic, JointType::Revolute] {
             let p = decode::<f64>(joint, &xi[..joint.num_params()], &com0, &cfg);
             let x = displacement(&p, 0.17).apply(&p.com);

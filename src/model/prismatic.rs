@@ -1,7 +1,7 @@
 //! Prismatic joint: the child translates along a unit direction `d`.
 //!
 //! Standardised parameters after the common block of [`super::rigid`]:
-//! - `xi[4..7] = v ~ N(0, I)`, `d = v / |v|`: a standard normal vector normalised is uniform on
+//! - `xi[5..8] = v ~ N(0, I)`, `d = v / |v|`: a standard normal vector normalised is uniform on
 //!   the sphere, so the prior over directions is uniform (the 6D screw of paper §3.2 with zero
 //!   rotational part).
 //!

@@ -1,8 +1,8 @@
 //! Revolute joint: the child rotates about an axis with unit direction `d` through point `p`.
 //!
 //! Standardised parameters after the common block of [`super::rigid`]:
-//! - `xi[4..7] = v ~ N(0, I)`, `d = v / |v|` (uniform prior over directions);
-//! - `xi[7..10]`: axis point `p = com0 + axis_point_sd_m * xi[7..10]` \[m\].
+//! - `xi[5..8] = v ~ N(0, I)`, `d = v / |v|` (uniform prior over directions);
+//! - `xi[8..11]`: axis point `p = com0 + axis_point_sd_m * xi[7..10]` \[m\].
 //!
 //! Joint coordinate `q` \[m\]: path length of the centre of mass, so the rotation angle is
 //! `q / r` with `r = sqrt(dist(com, axis)^2 + min_radius_m^2)`. Measuring every movable joint in
@@ -103,6 +103,49 @@ pub fn init(track: &[Vector3<f64>], com0: &Vector3<f64>, cfg: &ModelConfig) -> (
     ([3.0 * d.x, 3.0 * d.y, 3.0 * d.z, off.x / s, off.y / s, off.z / s], q)
 }
 
+/// Initial standardised axis parameters and path-length coordinates from observed rotations
+/// `rots[k]` (since the reference frame, fixed frame) at positions `track[k]` of the centre of
+/// mass: the axis direction is the mean rotation axis of the frames turned by more than 2 degrees,
+/// the axis point the least-squares solution of `(I - R_k) p = y_k - R_k com0` (its component along
+/// the axis taken from `com0`), the coordinates the signed angles times the radius. `None` when no
+/// frame turned that much.
+pub fn init_from_rotations(track: &[Vector3<f64>], rots: &[Matrix3<f64>], com0: &Vector3<f64>, cfg: &ModelConfig) -> Option<([f64; 6], Vec<f64>)> {
+    let vee = |r: &Matrix3<f64>| Vector3::new(r[(2, 1)] - r[(1, 2)], r[(0, 2)] - r[(2, 0)], r[(1, 0)] - r[(0, 1)]) * 0.5;
+    let angle_axis = |r: &Matrix3<f64>| {
+        let w = vee(r);
+        let angle = w.norm().atan2((r.trace() - 1.0) / 2.0);
+        (angle, if w.norm() > 1e-12 { w / w.norm() } else { Vector3::z() })
+    };
+    let turned: Vec<(f64, Vector3<f64>)> = rots.iter().map(angle_axis).filter(|(a, _)| *a > 2f64.to_radians()).collect();
+    let (_, big) = turned.iter().cloned().max_by(|a, b| a.0.total_cmp(&b.0))?;
+    let d = turned.iter().fold(Vector3::zeros(), |acc, (a, ax)| acc + ax * (a * ax.dot(&big).signum()));
+    let d = d.try_normalize(1e-12)?;
+    // (I - R) p = y - R com0 for every turned frame, plus a weak pull of p towards com0 along d.
+    let (mut ata, mut atb) = (d * d.transpose() * 1e-6, Vector3::zeros());
+    for (y, r) in track.iter().zip(rots) {
+        let a = Matrix3::identity() - r;
+        let b = y - r * com0;
+        ata += a.transpose() * a;
+        atb += a.transpose() * b;
+    }
+    atb += d * d.dot(com0) * 1e-6;
+    let p = ata.try_inverse()? * atb;
+    let max_off = 3.0 * cfg.axis_point_sd_m;
+    let mut off = p - com0;
+    if !off.iter().all(|x| x.is_finite()) {
+        return None;
+    }
+    if off.norm() > max_off {
+        off *= max_off / off.norm();
+    }
+    let rel = -off;
+    let perp = rel - d * rel.dot(&d);
+    let radius = (perp.norm_squared() + cfg.min_radius_m * cfg.min_radius_m).sqrt();
+    let q = rots.iter().map(|r| vee(r).dot(&d).atan2((r.trace() - 1.0) / 2.0 - 0.0) * radius).collect();
+    let s = cfg.axis_point_sd_m;
+    Some(([3.0 * d.x, 3.0 * d.y, 3.0 * d.z, off.x / s, off.y / s, off.z / s], q))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -112,7 +155,7 @@ mod tests {
         let cfg = ModelConfig::default();
         let com0 = Vector3::new(1.0, 0.0, 0.0);
         // Axis z through the origin: p = com0 + axis_point_sd_m * xi.
-        let xi = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 3.0, -1.0 / cfg.axis_point_sd_m, 0.0, 0.0];
+        let xi = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 3.0, -1.0 / cfg.axis_point_sd_m, 0.0, 0.0];
         let p = super::super::decode(super::super::JointType::Revolute, &xi, &com0, &cfg);
         let quarter = std::f64::consts::FRAC_PI_2 * p.radius;
         let x = super::super::displacement(&p, quarter).apply(&p.com);
@@ -123,5 +166,11 @@ mod tests {
         let (axis, q) = init(&track, &com0, &cfg);
         assert!((axis[3] * cfg.axis_point_sd_m + 0.5).abs() < 1e-6, "{axis:?}");
         assert!((q[19].abs() - 0.475).abs() < 2e-3, "{}", q[19]);
+        // The same arc with its rotations observed.
+        let rots: Vec<Matrix3<f64>> = (0..20).map(|i| super::super::rotation(&Vector3::z(), 0.05 * i as f64)).collect();
+        let (axis, q) = init_from_rotations(&track, &rots, &com0, &cfg).expect("it turns");
+        assert!((axis[2] - 3.0).abs() < 1e-9 && (axis[3] * cfg.axis_point_sd_m + 0.5).abs() < 1e-6, "{axis:?}");
+        let radius = (0.25f64 + cfg.min_radius_m.powi(2)).sqrt();
+        assert!((q[19] - 0.95 * radius).abs() < 1e-9, "{}", q[19]);
     }
 }

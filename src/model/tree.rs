@@ -13,7 +13,16 @@
 //!    paper's "first non-zero" is taken as the largest). Each part has exactly one parent earlier in
 //!    `P`, so the result is a tree. Gradients flow to the soft `u` (straight-through estimator).
 //!
-//! Prior: uniform over the `(N + 1)^(N - 1)` rooted trees (Cayley's formula, paper §3.2).
+//! Prior: the paper's is uniform over the `(N + 1)^(N - 1)` rooted trees (Cayley's formula, paper
+//! §3.2). bom's is a *contact prior*, `p(G) = prod_i w(i, parent_i) / Z`: a joint attaches a part to
+//! a part it touches, the more probably the larger their contact: `w(i, j) = A_ij + a_min` with
+//! `A_ij` the contact area of the two surfaces [m²], and the fixed frame — everything not
+//! segmented, whose surface is unknown — counts as a contact of `contact_world_m2`. Without it a
+//! door is as probably attached to the fixed frame as to the static cabinet that carries it (the
+//! motion cannot tell them apart), and half of its parent probability would sit on the wrong
+//! node; a microwave's door hinges on the microwave, not on the slider the microwave stands on,
+//! although it touches both. `Z` is the weighted number of trees, by the matrix-tree theorem
+//! ([`log_partition`]); with all weights equal the prior is the paper's.
 
 use rand::Rng;
 use rand_distr::{Distribution, Gumbel};
@@ -27,6 +36,42 @@ pub struct TreeSample {
     pub soft: Vec<Vec<f64>>,
     /// Nodes that were admissible parents of each part (before it in the order).
     pub admissible: Vec<Vec<usize>>,
+}
+
+/// Log weights `log w(i, j)` of the contact prior for part `i` under node `j` (0 = fixed frame,
+/// `k + 1` = part `k`; `-inf` for itself) from the contact areas `area[i][k]` \[m²\] between parts.
+pub fn contact_log_weights(area: &[Vec<f64>], world: f64, min: f64) -> Vec<Vec<f64>> {
+    let n = area.len();
+    (0..n)
+        .map(|i| (0..=n).map(|j| if j == 0 { world.ln() } else if j == i + 1 { f64::NEG_INFINITY } else { (area[i][j - 1] + min).ln() }).collect())
+        .collect()
+}
+
+/// `log Z`, the log of the weighted number of trees rooted at the fixed frame: the determinant of
+/// the `n x n` Laplacian with `L_ii = sum_j w(i, j)` and `L_ik = -w(i, k + 1)` (matrix-tree theorem).
+pub fn log_partition(log_w: &[Vec<f64>]) -> f64 {
+    let n = log_w.len();
+    if n == 0 {
+        return 0.0;
+    }
+    // Scale each row by its largest weight so the determinant stays in range.
+    let mut shift = 0.0;
+    let mut l = nalgebra::DMatrix::<f64>::zeros(n, n);
+    for i in 0..n {
+        let m = log_w[i].iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+        shift += m;
+        for j in 0..=n {
+            if j == i + 1 {
+                continue;
+            }
+            let w = (log_w[i][j] - m).exp();
+            l[(i, i)] += w;
+            if j > 0 {
+                l[(i, j - 1)] -= w;
+            }
+        }
+    }
+    l.determinant().max(1e-300).ln() + shift
 }
 
 /// `log p(G)` of the uniform prior over rooted trees on `n` parts plus the root: `-(n-1) ln(n+1)`.
@@ -71,13 +116,18 @@ pub fn is_tree(parent: &[usize]) -> bool {
     })
 }
 
+/// Scale of the Gumbel noise on the node order relative to one level of depth: small enough that a
+/// part rarely comes before its most probable parent (which would leave that parent inadmissible
+/// and spread its probability), large enough that every order stays possible.
+pub const ORDER_NOISE: f64 = 0.25;
+
 /// Draw one tree from the guide's parent logits (`n` rows of `n + 1` entries; the entry of a part
 /// as its own parent is ignored).
 pub fn sample<R: Rng>(logits: &[Vec<f64>], tau: f64, delta: f64, rng: &mut R) -> TreeSample {
     let n = logits.len();
     let gumbel = Gumbel::new(0.0, 1.0).expect("valid Gumbel");
     let depth = map_depths(logits);
-    let mut order: Vec<(f64, usize)> = (0..n).map(|i| (depth[i] as f64 + 0.5 * gumbel.sample(rng), i)).collect();
+    let mut order: Vec<(f64, usize)> = (0..n).map(|i| (depth[i] as f64 + ORDER_NOISE * gumbel.sample(rng), i)).collect();
     order.sort_by(|a, b| a.0.total_cmp(&b.0));
     let mut before = vec![0usize];
     let (mut parent, mut soft, mut admissible) = (vec![0; n], vec![vec![0.0; n + 1]; n], vec![Vec::new(); n]);
@@ -99,6 +149,11 @@ pub fn sample<R: Rng>(logits: &[Vec<f64>], tau: f64, delta: f64, rng: &mut R) ->
         before.push(i + 1);
     }
     TreeSample { parent, soft, admissible }
+}
+
+/// The tree in which every part hangs from the fixed frame (no soft weights: nothing to learn).
+pub fn star(n: usize) -> TreeSample {
+    TreeSample { parent: vec![0; n], soft: vec![vec![0.0; n + 1]; n], admissible: vec![vec![0]; n] }
 }
 
 /// Marginal parent probabilities of the guide, by Monte Carlo over the sampler (Gumbel-max, i.e.
@@ -133,5 +188,13 @@ mod tests {
         assert!((m[0].iter().sum::<f64>() - 1.0).abs() < 1e-9);
         assert_eq!(log_prior(1), 0.0);
         assert!((log_prior(3) - (-2.0 * 4f64.ln())).abs() < 1e-12);
+        // With equal weights the contact prior is the uniform one: Z = (n + 1)^(n - 1).
+        let flat = vec![vec![0.0; 4], vec![0.0; 4], vec![0.0; 4]];
+        let flat: Vec<Vec<f64>> = flat.iter().enumerate().map(|(i, r)| r.iter().enumerate().map(|(j, v)| if j == i + 1 { f64::NEG_INFINITY } else { *v }).collect()).collect();
+        assert!((log_partition(&flat) + log_prior(3)).abs() < 1e-9);
+        // Two parts: the trees are (0,0), (0,1), (2,0) in (parent of 1, parent of 2) notation.
+        let lw = vec![vec![0.1, f64::NEG_INFINITY, -0.7], vec![0.3, 1.2, f64::NEG_INFINITY]];
+        let z = (0.1f64 + 0.3).exp() + (0.1f64 + 1.2).exp() + (-0.7f64 + 0.3).exp();
+        assert!((log_partition(&lw) - z.ln()).abs() < 1e-9);
     }
 }

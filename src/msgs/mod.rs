@@ -238,6 +238,8 @@ pub struct ParameterEstimate {
     pub known: bool,
     pub median: f64,
     pub sd: f64,
+    pub q05: f64,
+    pub q95: f64,
 }
 
 /// `bom_msgs/msg/JointPosterior` (see `msg/msg/JointPosterior.msg`).
@@ -253,6 +255,7 @@ pub struct JointPosterior {
     pub p_revolute: f64,
     pub axis_direction: Vector3,
     pub axis_direction_sd_deg: f64,
+    pub axis_direction_q90_deg: f64,
     pub has_axis_point: bool,
     pub axis_point: Point,
     pub axis_point_sd_m: f64,

@@ -25,14 +25,23 @@ pub struct WindowJson {
 pub struct AxisJson {
     pub direction: [f64; 3],
     pub direction_sd_deg: f64,
+    /// Radius of the 90% credible cone around `direction` (beyond the contract's example).
+    pub direction_q90_deg: f64,
     pub point: Option<[f64; 3]>,
     pub point_sd_m: Option<f64>,
 }
 
+/// A kinodynamic parameter: median, sd and (beyond the contract's example) the 90% interval.
 #[derive(Debug, Serialize)]
 pub struct EstimateJson {
     pub median: f64,
     pub sd: f64,
+    pub q05: f64,
+    pub q95: f64,
+}
+
+fn estimate(e: &crate::inference::Estimate) -> EstimateJson {
+    EstimateJson { median: e.median, sd: e.sd, q05: e.q05, q95: e.q95 }
 }
 
 #[derive(Debug, Serialize)]
@@ -88,12 +97,14 @@ pub fn model_json(p: &Posterior) -> ModelJson {
             axis: j.axis.as_ref().filter(|_| j.map_type.movable()).map(|a| AxisJson {
                 direction: [a.direction.x, a.direction.y, a.direction.z],
                 direction_sd_deg: a.direction_sd_deg,
+                direction_q90_deg: a.direction_q90_deg,
                 point: a.point.map(|p| [p.x, p.y, p.z]),
                 point_sd_m: finite(a.point_sd_m),
             }),
-            damping: None,
-            friction: None,
-            mass: None,
+            // Kinodynamics are unknown in kinematic mode and for rigid joints (contract section 5).
+            damping: j.kinodynamics.as_ref().filter(|_| j.map_type.movable()).map(|k| estimate(&k.damping)),
+            friction: j.kinodynamics.as_ref().filter(|_| j.map_type.movable()).map(|k| estimate(&k.friction)),
+            mass: j.kinodynamics.as_ref().filter(|_| j.map_type.movable()).map(|k| estimate(&k.mass)),
         })
         .collect();
     ModelJson { inference: "svi".into(), runtime_s: p.runtime_s, elbo: p.elbo, iterations: p.iterations, joints }

@@ -4,7 +4,7 @@
 
 use nalgebra::{Isometry3, Vector3};
 
-use crate::inference::Posterior;
+use crate::inference::{Estimate, Posterior};
 use crate::msgs::{
     ColorRGBA, Header, JointPosterior, Marker, MarkerArray, ObjectModel, ParameterEstimate, Pose, PoseArray, Quaternion,
     Time, Vector3 as V3,
@@ -15,16 +15,22 @@ fn v3(v: &Vector3<f64>) -> V3 {
 }
 
 fn unknown() -> ParameterEstimate {
-    ParameterEstimate { known: false, median: f64::NAN, sd: f64::NAN }
+    ParameterEstimate { known: false, median: f64::NAN, sd: f64::NAN, q05: f64::NAN, q95: f64::NAN }
 }
 
-/// `bom_msgs/ObjectModel` of a posterior. Kinodynamic parameters are unknown in kinematic mode.
+fn estimate(e: Option<&Estimate>) -> ParameterEstimate {
+    e.map(|e| ParameterEstimate { known: true, median: e.median, sd: e.sd, q05: e.q05, q95: e.q95 }).unwrap_or_else(unknown)
+}
+
+/// `bom_msgs/ObjectModel` of a posterior. Kinodynamic parameters are unknown in kinematic mode
+/// and for rigid joints.
 pub fn object_model(p: &Posterior, stamp: Time, fixed_frame: &str, mode: &str, num_windows: u32) -> ObjectModel {
     let joints = p
         .joints
         .iter()
         .map(|j| {
             let axis = j.axis.as_ref().filter(|_| j.map_type.movable());
+            let kd = j.kinodynamics.as_ref().filter(|_| j.map_type.movable());
             JointPosterior {
                 child: j.child as i32,
                 parent: j.parent as i32,
@@ -36,12 +42,13 @@ pub fn object_model(p: &Posterior, stamp: Time, fixed_frame: &str, mode: &str, n
                 p_revolute: j.type_probs[2],
                 axis_direction: axis.map(|a| v3(&a.direction)).unwrap_or_default(),
                 axis_direction_sd_deg: axis.map(|a| a.direction_sd_deg).unwrap_or(f64::NAN),
+                axis_direction_q90_deg: axis.map(|a| a.direction_q90_deg).unwrap_or(f64::NAN),
                 has_axis_point: axis.and_then(|a| a.point).is_some(),
                 axis_point: axis.and_then(|a| a.point).map(|p| v3(&p)).unwrap_or_default(),
                 axis_point_sd_m: axis.map(|a| a.point_sd_m).unwrap_or(f64::NAN),
-                damping: unknown(),
-                friction: unknown(),
-                mass: unknown(),
+                damping: estimate(kd.map(|k| &k.damping)),
+                friction: estimate(kd.map(|k| &k.friction)),
+                mass: estimate(kd.map(|k| &k.mass)),
             }
         })
         .collect();

@@ -42,10 +42,8 @@ pub fn write_replay_bag(run: &Run, path: &Path, cfg: &Config) -> Result<(), Stri
         stamps.sort_by(|a, b| a.total_cmp(b));
         stamps.dedup();
         let labels: Vec<u32> = first.posterior.joints.iter().map(|j| j.child).collect();
-        let reference: Vec<UnitQuaternion<f64>> = labels
-            .iter()
-            .map(|l| run.tracks.get(l).and_then(|o| o.iter().find_map(|o| o.orientation)).unwrap_or_else(UnitQuaternion::identity))
-            .collect();
+        // A part's frame is aligned with the fixed frame in its reference configuration.
+        let reference = vec![UnitQuaternion::identity(); labels.len()];
         let mut coords = vec![0.0; labels.len()];
         let mut cursor: std::collections::BTreeMap<u32, usize> = labels.iter().map(|l| (*l, 0)).collect();
         for t in stamps {
@@ -61,7 +59,8 @@ pub fn write_replay_bag(run: &Run, path: &Path, cfg: &Config) -> Result<(), Stri
                     while *c < obs.len() && obs[*c].stamp < t {
                         *c += 1;
                     }
-                    (*c < obs.len() && obs[*c].stamp == t).then(|| obs[*c].com.coords)
+                    let com = run.geometry.get(l).map(|g| g.com).unwrap_or_default();
+                    (*c < obs.len() && obs[*c].stamp == t).then(|| (obs[*c].pose * nalgebra::Point3::from(com)).coords)
                 })
                 .collect();
             let poses = u.posterior.predict_poses(&observed, &mut coords, &reference);

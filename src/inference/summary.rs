@@ -1,0 +1,122 @@
+//! Posterior summaries of a fitted guide: parent marginals and the most probable tree, joint-type
+//! probabilities, axes with their spread, kinodynamic parameters with their 90% intervals.
+
+use nalgebra::Vector3;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, StandardNormal};
+
+use super::guide::{Block, Layout};
+use super::{AxisSummary, Estimate, JointSummary, Kinodynamics};
+use crate::model::likelihood::Evidence;
+use crate::model::{decode, dynamics, tree, JointParams, JointType, ModelConfig};
+
+/// `softmax(z)`.
+pub fn softmax(z: &[f64]) -> Vec<f64> {
+    let mx = z.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+    let e: Vec<f64> = z.iter().map(|v| (v - mx).exp()).collect();
+    let s: f64 = e.iter().sum();
+    e.iter().map(|v| v / s).collect()
+}
+
+/// Summaries of every joint. `type_logits` and `parent_logits` are the (averaged) discrete
+/// guide; `samples` the number of draws used for spreads.
+#[allow(clippy::too_many_arguments)]
+pub fn joints(
+    ev: &Evidence,
+    model: &ModelConfig,
+    layout: &Layout,
+    theta: &[f64],
+    type_logits: &[[f64; 3]],
+    parent_logits: &[Vec<f64>],
+    samples: usize,
+    rng: &mut ChaCha8Rng,
+) -> Vec<JointSummary> {
+    let n = ev.parts.len();
+    let marg = tree::parent_marginals(parent_logits, 2000, rng);
+    // The most probable tree: the most frequent hard sample.
+    let mut counts: std::collections::HashMap<Vec<usize>, usize> = std::collections::HashMap::new();
+    for _ in 0..500 {
+        *counts.entry(tree::sample(parent_logits, 1.0, 0.5, rng).parent).or_default() += 1;
+    }
+    let map_tree = counts.into_iter().max_by(|a, b| a.1.cmp(&b.1).then(b.0.cmp(&a.0))).map(|(t, _)| t).unwrap_or(vec![0; n]);
+    (0..n)
+        .map(|i| {
+            let probs = softmax(&type_logits[i]);
+            let type_probs = [probs[0], probs[1], probs[2]];
+            let map_type = JointType::ALL[(0..3).max_by(|&a, &b| probs[a].total_cmp(&probs[b])).unwrap_or(0)];
+            // The axis and kinodynamics of the more probable movable type.
+            let axis_type = if probs[2] >= probs[1] { JointType::Revolute } else { JointType::Prismatic };
+            let b = layout.blocks[i][axis_type.index()];
+            let axis = Some(axis_summary(ev, i, &b, theta, model, samples, rng));
+            let kinodynamics = b.kd.map(|kd| {
+                let mean = kd.mean(theta);
+                let l = kd.factor(theta);
+                let cov = &l * l.transpose();
+                let est = |j: usize, (median, sd_log): (f64, f64)| {
+                    let (median, sd, q05, q95) = dynamics::log_normal_summary(median, sd_log, mean[j], cov[(j, j)].sqrt());
+                    Estimate { median, sd, q05, q95 }
+                };
+                let [d, f, m] = dynamics::prior_scales(axis_type, &model.dynamics);
+                Kinodynamics { damping: est(0, d), friction: est(1, f), mass: est(2, m) }
+            });
+            let mean_params: [JointParams<f64>; 3] = JointType::ALL.map(|jt| {
+                let bl = layout.blocks[i][jt.index()];
+                decode::<f64>(jt, &theta[bl.mu..bl.mu + jt.num_params()], &ev.parts[i].com0, model)
+            });
+            let coordinates: [Vec<f64>; 3] = JointType::ALL.map(|jt| match layout.blocks[i][jt.index()].q {
+                Some((qm, _)) => (0..ev.len()).map(|t| if t == 0 { 0.0 } else { theta[qm + t] }).collect(),
+                None => vec![0.0; ev.len()],
+            });
+            let parent_probs: Vec<(u32, f64)> =
+                (0..=n).filter(|&j| j != i + 1).map(|j| (if j == 0 { 0 } else { ev.parts[j - 1].label }, marg[i][j])).collect();
+            let parent = map_tree[i];
+            JointSummary {
+                child: ev.parts[i].label,
+                parent: if parent == 0 { 0 } else { ev.parts[parent - 1].label },
+                parent_index: parent,
+                parent_probs,
+                type_probs,
+                map_type,
+                axis,
+                kinodynamics,
+                mean_params,
+                coordinates,
+            }
+        })
+        .collect()
+}
+
+/// The axis of block `b` of part `i`: mean direction and point (the point of the axis closest to
+/// the part's centre of mass), their spreads, and the 90% quantile of the angle between sampled
+/// directions and the mean (the radius of the 90% credible cone).
+fn axis_summary(ev: &Evidence, i: usize, b: &Block, theta: &[f64], model: &ModelConfig, samples: usize, rng: &mut ChaCha8Rng) -> AxisSummary {
+    let np = b.joint.num_params();
+    let mean = decode::<f64>(b.joint, &theta[b.mu..b.mu + np], &ev.parts[i].com0, model);
+    let (mut dirs, mut points) = (Vec::new(), Vec::new());
+    for _ in 0..samples.max(2) {
+        let xi: Vec<f64> = (0..np)
+            .map(|j| {
+                let e: f64 = StandardNormal.sample(rng);
+                theta[b.mu + j] + theta[b.log_s + j].exp() * e
+            })
+            .collect();
+        let p = decode::<f64>(b.joint, &xi, &ev.parts[i].com0, model);
+        let d = if p.direction.dot(&mean.direction) < 0.0 { -p.direction } else { p.direction };
+        dirs.push(d);
+        points.push(p.point + d * (p.com - p.point).dot(&d));
+    }
+    let m = dirs.iter().sum::<Vector3<f64>>();
+    let dir = m / m.norm();
+    let mut angles: Vec<f64> = dirs.iter().map(|d| d.dot(&dir).clamp(-1.0, 1.0).acos().to_degrees()).collect();
+    let sd_deg = (angles.iter().map(|a| a * a).sum::<f64>() / angles.len() as f64).sqrt();
+    angles.sort_by(|a, b| a.total_cmp(b));
+    let q90 = angles[((angles.len() - 1) as f64 * 0.9).round() as usize];
+    let (point, point_sd) = if b.joint == JointType::Revolute {
+        let pm = points.iter().sum::<Vector3<f64>>() / points.len() as f64;
+        let sd = (points.iter().map(|p| (p - pm).norm_squared()).sum::<f64>() / points.len() as f64).sqrt();
+        (Some(pm), sd)
+    } else {
+        (None, f64::NAN)
+    };
+    AxisSummary { joint: b.joint, direction: dir, direction_sd_deg: sd_deg, direction_q90_deg: q90, point, point_sd_m: point_sd }
+}

@@ -1,0 +1,142 @@
+//! Geometry of point sets: robust stray-point removal, principal axes, convex-hull mass
+//! properties (parry3d) and surface normals.
+
+use nalgebra::{Matrix3, Point3, SymmetricEigen, Vector3};
+
+fn median(v: &mut [f64]) -> f64 {
+    v.sort_by(|a, b| a.total_cmp(b));
+    let n = v.len();
+    if n == 0 {
+        return 0.0;
+    }
+    if n % 2 == 1 { v[n / 2] } else { 0.5 * (v[n / 2 - 1] + v[n / 2]) }
+}
+
+/// Indices of the points that are not strays: points farther from the coordinate-wise median
+/// than `max(median + 6 x 1.4826 x MAD, 4 x median, 1 mm)` of the distances are dropped (a robust
+/// 6-sigma rule that still keeps the corners of a box-shaped part).
+pub fn inliers(pts: &[Point3<f64>]) -> Vec<usize> {
+    let mut c = [0.0; 3];
+    for (k, ck) in c.iter_mut().enumerate() {
+        let mut v: Vec<f64> = pts.iter().map(|p| p[k]).collect();
+        *ck = median(&mut v);
+    }
+    let centre = Point3::new(c[0], c[1], c[2]);
+    let d: Vec<f64> = pts.iter().map(|p| (p - centre).norm()).collect();
+    let med = median(&mut d.clone());
+    let mad = median(&mut d.iter().map(|x| (x - med).abs()).collect::<Vec<_>>());
+    let cut = (med + 6.0 * 1.4826 * mad).max(4.0 * med).max(1e-3);
+    (0..pts.len()).filter(|&i| d[i] <= cut).collect()
+}
+
+/// Principal axes of a point set: mean, variances in decreasing order and the matching unit
+/// axes (columns).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Principal {
+    pub mean: Vector3<f64>,
+    pub variances: [f64; 3],
+    pub axes: Matrix3<f64>,
+}
+
+/// Principal axes of `pts` (at least one point).
+pub fn principal(pts: &[Point3<f64>]) -> Principal {
+    let n = pts.len().max(1) as f64;
+    let mean = pts.iter().fold(Vector3::zeros(), |a, p| a + p.coords) / n;
+    let cov = pts.iter().fold(Matrix3::zeros(), |a, p| {
+        let r = p.coords - mean;
+        a + r * r.transpose()
+    }) / n;
+    let eig = SymmetricEigen::new(cov);
+    let mut order = [0usize, 1, 2];
+    order.sort_by(|&a, &b| eig.eigenvalues[b].total_cmp(&eig.eigenvalues[a]));
+    let variances = order.map(|i| eig.eigenvalues[i].max(0.0));
+    let axes = Matrix3::from_columns(&order.map(|i| eig.eigenvectors.column(i).into_owned()));
+    Principal { mean, variances, axes }
+}
+
+/// Mass properties of the convex hull of a point set, per unit mass.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HullProperties {
+    /// Centroid of the hull (uniform density) \[m\].
+    pub centroid: Vector3<f64>,
+    /// Rotational inertia about the centroid per kilogram, same axes as the points (m²).
+    pub unit_inertia: Matrix3<f64>,
+    /// Hull volume (m³).
+    pub volume: f64,
+}
+
+/// Convex-hull mass properties (parry3d, uniform density) of points that span a volume: at least
+/// 8 points and a smallest principal standard deviation of `min_thickness` \[m\]; `None` for flat or
+/// tiny sets. Parry works in `f32`, so the points are expressed relative to their mean first.
+pub fn hull_properties(pts: &[Point3<f64>], min_thickness: f64) -> Option<HullProperties> {
+    let pr = principal(pts);
+    if pts.len() < 8 || pr.variances[2].sqrt() < min_thickness {
+        return None;
+    }
+    let local: Vec<parry3d::math::Vector> = pts
+        .iter()
+        .map(|p| {
+            let r = p.coords - pr.mean;
+            parry3d::math::Vector::new(r.x as f32, r.y as f32, r.z as f32)
+        })
+        .collect();
+    let (verts, idx) = parry3d::transformation::try_convex_hull(&local).ok()?;
+    let mp = parry3d::mass_properties::MassProperties::from_convex_polyhedron(1.0, &verts, &idx);
+    let (mass, lc) = (mp.mass() as f64, mp.local_com);
+    if !(mass > 0.0 && lc.x.is_finite() && lc.y.is_finite() && lc.z.is_finite()) {
+        return None;
+    }
+    let centroid = pr.mean + Vector3::new(lc.x as f64, lc.y as f64, lc.z as f64);
+    // Inertia about the centroid per unit mass (parry gives it for the density-1 hull).
+    let cols = mp.reconstruct_inertia_matrix().to_cols_array();
+    let unit_inertia = Matrix3::from_column_slice(&cols.map(|v| v as f64)) / mass;
+    Some(HullProperties { centroid, unit_inertia, volume: mass })
+}
+
+/// Unit surface normal of a neighbourhood of points — the direction of least spread — and its
+/// surface variation `l_min / (l_0 + l_1 + l_2)` (0 on a plane, 1/3 for an isotropic blob).
+pub fn normal_of(pts: &[Vector3<f64>]) -> (Vector3<f64>, f64) {
+    let n = pts.len().max(1) as f64;
+    let mean = pts.iter().sum::<Vector3<f64>>() / n;
+    let cov = pts.iter().fold(Matrix3::zeros(), |a, p| a + (p - mean) * (p - mean).transpose());
+    let eig = SymmetricEigen::new(cov);
+    let i = eig.eigenvalues.imin();
+    let v = eig.eigenvectors.column(i).into_owned();
+    let total = eig.eigenvalues.iter().map(|l| l.max(0.0)).sum::<f64>();
+    let variation = if total > 0.0 { eig.eigenvalues[i].max(0.0) / total } else { 1.0 / 3.0 };
+    if v.iter().all(|x| x.is_finite()) && v.norm() > 0.5 { (v.normalize(), variation) } else { (Vector3::z(), 1.0 / 3.0) }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    #[test]
+    fn hull_of_a_box_ignores_density_and_gives_its_inertia() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+        // A 0.4 x 0.2 x 0.1 box centred at (1, 2, 3), sampled much more densely on one half,
+        // plus a stray point that the inlier rule drops.
+        let mut pts: Vec<Point3<f64>> = (0..3000)
+            .map(|i| {
+                let x = if i % 4 == 0 { rng.random_range(-0.2..0.2) } else { rng.random_range(0.0..0.2) };
+                Point3::new(1.0 + x, 2.0 + rng.random_range(-0.1..0.1), 3.0 + rng.random_range(-0.05..0.05))
+            })
+            .collect();
+        pts.push(Point3::new(5.0, 5.0, 5.0));
+        let keep = inliers(&pts);
+        assert_eq!(keep.len(), pts.len() - 1);
+        let kept: Vec<Point3<f64>> = keep.iter().map(|&i| pts[i]).collect();
+        let h = hull_properties(&kept, 0.005).expect("a box spans a volume");
+        assert!((h.centroid - Vector3::new(1.0, 2.0, 3.0)).norm() < 0.01, "{}", h.centroid);
+        assert!((h.volume - 0.4 * 0.2 * 0.1).abs() < 0.001, "{}", h.volume);
+        // Box inertia per kg about x: (b^2 + c^2) / 12.
+        let ixx = (0.2f64.powi(2) + 0.1f64.powi(2)) / 12.0;
+        assert!((h.unit_inertia[(0, 0)] - ixx).abs() < 0.1 * ixx, "{}", h.unit_inertia);
+        // A flat patch spans no volume.
+        let flat: Vec<Point3<f64>> = (0..25).map(|i| Point3::new(0.01 * (i % 5) as f64, 0.01 * (i / 5) as f64, 0.5)).collect();
+        assert!(hull_properties(&flat, 0.005).is_none());
+        let (n, variation) = normal_of(&flat.iter().map(|p| p.coords).collect::<Vec<_>>());
+        assert!(n.z.abs() > 0.999 && variation < 1e-9, "{n} {variation}");
+    }
+}

@@ -1,0 +1,362 @@
+//! Perception stage: segmented clouds (fixed frame) to per-part poses relative to a reference
+//! configuration, each with its uncertainty, and per-part geometry (centre of mass, inertia per
+//! kilogram, observable rotation axes, surface points).
+//!
+//! Per frame and part ([`Perception::observe`]):
+//! 1. **Points**: at most `max_points` (an even subsample), each weighted `boundary_weight` where
+//!    a point of another part lies within `boundary_m` (segmentation swaps labels along part
+//!    boundaries), else 1.
+//! 2. **Pose** by registration against the part's surface model ([`registration`]): the rigid
+//!    motion `T_t` from the part's reference configuration (its first observed frame) to now, with
+//!    the model growing as new surfaces come into view.
+//! 3. **Uncertainty**: the covariance of the pose from the registration's Gauss-Newton matrix,
+//!    scaled by `registration_cov_scale` (neighbouring points of a depth image do not err
+//!    independently), expressed as the covariance of the part's anchor point and of its rotation,
+//!    plus the floors `com_sd_floor_m` and `rotation_sd_floor_rad`.
+//!
+//! Per part, at any time ([`Perception::geometry`]): the centre of mass of the part's model in the
+//! reference configuration — the centroid of its convex hull where the model spans a volume
+//! (parry3d mass properties), else its mean — its inertia per kilogram (the hull's, else the
+//! points' second moment, as for a thin shell), and which rotations its shape makes observable: a
+//! rotation about a principal axis is observable only if the spreads along the other two axes
+//! differ by `orientation_min_ratio` (nothing about a cube, not the spin of a square plate).
+
+pub mod geometry;
+pub mod registration;
+
+use std::collections::BTreeMap;
+
+use kiddo::{KdTree, SquaredEuclidean};
+use nalgebra::{Isometry3, Matrix3, Matrix3x6, Matrix6, Point3, Vector3};
+use serde::{Deserialize, Serialize};
+
+use crate::input::CloudFrame;
+use registration::{FramePoints, Tracker};
+
+/// Perception settings (`perception` section of the config).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct PerceptionConfig {
+    /// Fewer points than this and the part is treated as not seen in that frame.
+    pub min_points: usize,
+    /// At most this many points per part and frame are registered (an even subsample).
+    pub max_points: usize,
+    /// Minimum smallest principal standard deviation for a model's convex hull \[m\].
+    pub min_thickness_m: f64,
+    /// Floor of the standard deviation of a part's position \[m\].
+    pub com_sd_floor_m: f64,
+    /// Floor of the standard deviation of a part's rotation \[rad\].
+    pub rotation_sd_floor_rad: f64,
+    /// Ratio between principal spreads for a rotation to be observable.
+    pub orientation_min_ratio: f64,
+    /// Registration covariance multiplier (errors of neighbouring depth pixels are correlated).
+    pub registration_cov_scale: f64,
+    /// Model resolution: one model point per voxel of this size \[m\].
+    pub voxel_m: f64,
+    /// Range of the point-to-plane scale of the Cauchy kernel, which is estimated per frame from
+    /// the residuals (the depth noise) \[m\].
+    pub point_sd_min_m: f64,
+    pub point_sd_max_m: f64,
+    /// Weight of the point-to-point term, and its scale as a multiple of the point-to-plane scale
+    /// (at least one voxel: model points are that far apart).
+    pub point_to_point_weight: f64,
+    pub point_to_point_ratio: f64,
+    /// Correspondence gates: coarse (first half of the iterations), fine (second half, costs) \[m\].
+    pub match_gate_m: f64,
+    pub fine_gate_m: f64,
+    pub icp_iterations: usize,
+    /// Points within this distance of another part's points ...
+    pub boundary_m: f64,
+    /// ... count with this weight and never grow the model.
+    pub boundary_weight: f64,
+    /// A candidate model point must be seen in this many frames to join the model.
+    pub confirm_frames: usize,
+    /// During its first frames, while still in its reference pose, a part's points join its model
+    /// without confirmation.
+    pub initial_frames: usize,
+    pub max_model_points: usize,
+    /// Surface points closer than this to another part touch it (contact prior on trees) \[m\].
+    pub contact_range_m: f64,
+    /// Cost of moving away from the previous pose, and of returning to the reference pose
+    /// \[nats\].
+    pub move_penalty_nats: f64,
+    pub reference_penalty_nats: f64,
+}
+
+impl Default for PerceptionConfig {
+    fn default() -> Self {
+        PerceptionConfig {
+            min_points: 8,
+            max_points: 400,
+            min_thickness_m: 0.005,
+            com_sd_floor_m: 0.001,
+            rotation_sd_floor_rad: 0.02,
+            orientation_min_ratio: 1.3,
+            registration_cov_scale: 4.0,
+            voxel_m: 0.008,
+            point_sd_min_m: 0.0005,
+            point_sd_max_m: 0.02,
+            point_to_point_weight: 0.3,
+            point_to_point_ratio: 3.3,
+            match_gate_m: 0.1,
+            fine_gate_m: 0.02,
+            icp_iterations: 20,
+            boundary_m: 0.02,
+            boundary_weight: 0.0,
+            confirm_frames: 3,
+            initial_frames: 10,
+            max_model_points: 6000,
+            contact_range_m: 0.015,
+            move_penalty_nats: 8.0,
+            reference_penalty_nats: 0.0,
+        }
+    }
+}
+
+/// One part seen in one frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PartObservation {
+    /// Header stamp \[s\].
+    pub stamp: f64,
+    /// Rigid motion of the part from its reference configuration to this frame (fixed frame).
+    pub pose: Isometry3<f64>,
+    /// The part's anchor (the centroid of its first observed points) moved by `pose` \[m\], fixed
+    /// frame: a material point of the part, for measuring its speed.
+    pub com: Point3<f64>,
+    /// Covariance of `pose` as of a small increment `(w, u)` in the reference configuration
+    /// (`y -> y + w x y + u`; rad², m²), floors included.
+    pub pose_cov: Matrix6<f64>,
+    /// Fraction of the points matched to the part's model.
+    pub matched: f64,
+    /// Points used.
+    pub points: usize,
+    /// Points dropped as strays (first frame) or beyond the subsample.
+    pub outliers: usize,
+}
+
+/// Per-part observation tracks, by label, in time order.
+pub type PartTracks = BTreeMap<u32, Vec<PartObservation>>;
+
+/// Geometry of one part in its reference configuration (fixed frame).
+#[derive(Debug, Clone, PartialEq)]
+pub struct PartGeometry {
+    /// Centre of mass \[m\]: the convex-hull centroid of the model, or its mean when flat.
+    pub com: Vector3<f64>,
+    /// Rotational inertia about `com` per kilogram (m²), fixed-frame axes.
+    pub unit_inertia: Matrix3<f64>,
+    /// Hull volume (m³), 0 for flat or tiny models.
+    pub volume: f64,
+    /// Unit rotation axes whose rotations the shape makes observable (0 to 3 principal axes).
+    pub rotation_axes: Vec<Vector3<f64>>,
+    /// Root-mean-square distance of the model points from `com` \[m\].
+    pub radius: f64,
+    /// Model surface points \[m\] (for distances between parts).
+    pub points: Vec<Vector3<f64>>,
+}
+
+#[derive(Debug)]
+struct PartState {
+    tracker: Tracker,
+    anchor: Vector3<f64>,
+}
+
+/// Stateful perception: one tracker per part label.
+#[derive(Debug, Default)]
+pub struct Perception {
+    pub config: PerceptionConfig,
+    parts: BTreeMap<u32, PartState>,
+}
+
+impl Perception {
+    pub fn new(config: PerceptionConfig) -> Self {
+        Perception { config, parts: BTreeMap::new() }
+    }
+
+    /// Observe every part of one cloud; parts with fewer than `min_points` points, or whose points
+    /// match neither their model nor any pose, are not reported for this frame.
+    pub fn observe(&mut self, cloud: &CloudFrame) -> Vec<(u32, PartObservation)> {
+        let cfg = &self.config;
+        let mut by_label: BTreeMap<u32, Vec<Vector3<f64>>> = BTreeMap::new();
+        for (p, l) in cloud.points.iter().zip(&cloud.labels) {
+            by_label.entry(*l).or_default().push(p.coords);
+        }
+        let mut dropped: BTreeMap<u32, usize> = BTreeMap::new();
+        for (l, pts) in by_label.iter_mut() {
+            if pts.len() > cfg.max_points {
+                let n = pts.len();
+                *pts = (0..cfg.max_points).map(|i| pts[i * n / cfg.max_points]).collect();
+                dropped.insert(*l, n - cfg.max_points);
+            }
+        }
+        // Points of every part in one tree, to find points near another part.
+        let mut all: KdTree<f64, 3> = KdTree::new();
+        let mut seen = std::collections::HashSet::new();
+        for (l, pts) in &by_label {
+            for p in pts {
+                // Exact duplicates add nothing and a k-d tree bucket holds few of them.
+                if seen.insert((p.x.to_bits(), p.y.to_bits(), p.z.to_bits())) {
+                    all.add(&[p.x, p.y, p.z], *l as u64);
+                }
+            }
+        }
+        let r2 = cfg.boundary_m * cfg.boundary_m;
+        let mut out = Vec::new();
+        for (label, pts) in by_label {
+            if pts.len() < cfg.min_points {
+                continue;
+            }
+            let weights: Vec<f64> = pts
+                .iter()
+                .map(|p| {
+                    let near_other = by_label_len_gt1(&all, p, r2, label);
+                    if near_other { cfg.boundary_weight } else { 1.0 }
+                })
+                .collect();
+            let dropped = dropped.get(&label).copied().unwrap_or(0);
+            let state = match self.parts.get_mut(&label) {
+                Some(s) => s,
+                None => {
+                    let pts3: Vec<Point3<f64>> = pts.iter().map(|p| Point3::from(*p)).collect();
+                    let keep = geometry::inliers(&pts3);
+                    let clean: Vec<Vector3<f64>> =
+                        keep.iter().filter(|&&i| weights[i] >= 1.0).map(|&i| pts[i]).collect();
+                    let clean = if clean.len() >= cfg.min_points { clean } else { keep.iter().map(|&i| pts[i]).collect() };
+                    let anchor = clean.iter().sum::<Vector3<f64>>() / clean.len().max(1) as f64;
+                    let tracker = Tracker::new(&clean, cfg);
+                    self.parts.insert(label, PartState { tracker, anchor });
+                    let obs = observation(cloud.stamp, Isometry3::identity(), None, anchor, cfg, clean.len(), pts.len() - clean.len() + dropped, 1.0);
+                    out.push((label, obs));
+                    continue;
+                }
+            };
+            let Some(reg) = state.tracker.update(&FramePoints { points: &pts, weights: &weights }, cfg) else { continue };
+            let obs = observation(cloud.stamp, reg.pose, Some(&reg.information), state.anchor, cfg, pts.len(), dropped, reg.matched);
+            out.push((label, obs));
+        }
+        out
+    }
+
+    /// Observe a whole recording.
+    pub fn observe_all(&mut self, clouds: &[CloudFrame]) -> PartTracks {
+        let mut tracks = PartTracks::new();
+        for c in clouds {
+            for (label, obs) in self.observe(c) {
+                tracks.entry(label).or_default().push(obs);
+            }
+        }
+        tracks
+    }
+
+    /// Geometry of every part seen so far, from its current model.
+    pub fn geometry(&self) -> BTreeMap<u32, PartGeometry> {
+        self.parts.iter().map(|(l, s)| (*l, part_geometry(&s.tracker.model.points, &self.config))).collect()
+    }
+}
+
+/// Whether a point of another label than `label` lies within `sqrt(r2)` of `p`.
+fn by_label_len_gt1(all: &KdTree<f64, 3>, p: &Vector3<f64>, r2: f64, label: u32) -> bool {
+    all.within_unsorted::<SquaredEuclidean>(&[p.x, p.y, p.z], r2).iter().any(|n| n.item != label as u64)
+}
+
+/// The observation of a registered frame, its pose covariance from the registration's
+/// Gauss-Newton matrix (`None`: the reference frame itself, known up to the floors).
+#[allow(clippy::too_many_arguments)]
+fn observation(
+    stamp: f64,
+    pose: Isometry3<f64>,
+    information: Option<&Matrix6<f64>>,
+    anchor: Vector3<f64>,
+    cfg: &PerceptionConfig,
+    points: usize,
+    outliers: usize,
+    matched: f64,
+) -> PartObservation {
+    let (fr, fp) = (cfg.rotation_sd_floor_rad.powi(2), cfg.com_sd_floor_m.powi(2));
+    let mut pose_cov = Matrix6::from_diagonal(&nalgebra::Vector6::new(fr, fr, fr, fp, fp, fp));
+    if let Some(a) = information {
+        // Regularised inverse: an unconstrained direction gets a large but finite variance.
+        let reg = a + Matrix6::identity() * (1e-9 * a.trace().max(1e-12) + 1.0);
+        pose_cov += reg.try_inverse().unwrap_or_else(Matrix6::identity) * cfg.registration_cov_scale;
+    }
+    PartObservation { stamp, pose, com: pose * Point3::from(anchor), pose_cov, matched, points, outliers }
+}
+
+impl PartObservation {
+    /// Covariance \[m²\] (fixed frame) of the position of the material point `c` (reference
+    /// configuration): a small increment `(w, u)` moves it by `R (c x w - u)`.
+    pub fn position_cov(&self, c: &Vector3<f64>) -> Matrix3<f64> {
+        let r = self.pose.rotation.to_rotation_matrix().into_inner();
+        let mut j = Matrix3x6::<f64>::zeros();
+        j.fixed_view_mut::<3, 3>(0, 0).copy_from(&registration::skew(c));
+        j.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-Matrix3::identity()));
+        r * (j * self.pose_cov * j.transpose()) * r.transpose()
+    }
+
+    /// Covariance \[rad²\] of the rotation vector of the rotation error, fixed frame.
+    pub fn rotation_cov(&self) -> Matrix3<f64> {
+        let r = self.pose.rotation.to_rotation_matrix().into_inner();
+        r * self.pose_cov.fixed_view::<3, 3>(0, 0).into_owned() * r.transpose()
+    }
+}
+
+/// Geometry of a part's model (see [`PartGeometry`]).
+pub fn part_geometry(points: &[Vector3<f64>], cfg: &PerceptionConfig) -> PartGeometry {
+    let p3: Vec<Point3<f64>> = points.iter().map(|p| Point3::from(*p)).collect();
+    let pr = geometry::principal(&p3);
+    let hull = geometry::hull_properties(&p3, cfg.min_thickness_m);
+    let (com, unit_inertia, volume) = match hull {
+        Some(h) => (h.centroid, h.unit_inertia, h.volume),
+        None => {
+            // A thin shell: the inertia of the points themselves, tr(C) I - C per kilogram.
+            let c = pr.axes * Matrix3::from_diagonal(&Vector3::from(pr.variances)) * pr.axes.transpose();
+            (pr.mean, Matrix3::identity() * c.trace() - c, 0.0)
+        }
+    };
+    let v = pr.variances;
+    let r = cfg.orientation_min_ratio;
+    // Rotation about principal axis k is observable if the spreads along the other two differ.
+    let observable = [v[1] > r * v[2], v[0] > r * v[2], v[0] > r * v[1]];
+    let rotation_axes = (0..3).filter(|&k| observable[k] && v[2] >= 0.0).map(|k| pr.axes.column(k).into_owned()).collect();
+    let radius = (points.iter().map(|p| (p - com).norm_squared()).sum::<f64>() / points.len().max(1) as f64).sqrt();
+    PartGeometry { com, unit_inertia, volume, rotation_axes, radius, points: points.to_vec() }
+}
+
+/// The part whose points lie nearest to `point` (contract: the pushed part is the one nearest the
+/// contact point), with that distance \[m\].
+pub fn nearest_part(cloud: &CloudFrame, point: &Point3<f64>) -> Option<(u32, f64)> {
+    cloud
+        .points
+        .iter()
+        .zip(&cloud.labels)
+        .map(|(p, l)| (*l, (p - point).norm()))
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn observability_follows_the_shape() {
+        let cfg = PerceptionConfig::default();
+        // A cube of points: no rotation observable; a flat square: all but its spin; a box: all.
+        let lattice = |sx: f64, sy: f64, sz: f64| -> Vec<Vector3<f64>> {
+            let mut v = Vec::new();
+            for a in 0..5 {
+                for b in 0..5 {
+                    for c in 0..5 {
+                        v.push(Vector3::new(sx * a as f64, sy * b as f64, sz * c as f64));
+                    }
+                }
+            }
+            v
+        };
+        assert_eq!(part_geometry(&lattice(0.01, 0.01, 0.01), &cfg).rotation_axes.len(), 0);
+        let sq = part_geometry(&lattice(0.01, 0.01, 0.0), &cfg);
+        assert_eq!(sq.rotation_axes.len(), 2);
+        assert!(sq.rotation_axes.iter().all(|a| a.z.abs() < 1e-9), "{:?}", sq.rotation_axes);
+        let bx = part_geometry(&lattice(0.04, 0.02, 0.01), &cfg);
+        assert_eq!(bx.rotation_axes.len(), 3);
+        assert!(bx.volume > 0.0 && (bx.com - Vector3::new(0.08, 0.04, 0.02)).norm() < 1e-6);
+    }
+}

@@ -1,0 +1,475 @@
+//! Part tracking by registration: each part's pose relative to its reference configuration, by
+//! robust ICP of its points against a model of the part that grows as new surfaces come into view.
+//!
+//! Why registration and not the centroid of the visible points: a part's *visible* surface changes
+//! as the object moves — a cabinet's interior appears when its door opens, a door turned away
+//! shows its edge — and the centroid of what is visible drifts by tens of centimetres while the
+//! part does not move at all. Registering the points against a model of the part's surface
+//! measures the part's motion, not the motion of its visible patch.
+//!
+//! Per frame (points in the fixed frame, `x = T y` with `y` in the reference configuration):
+//! 1. **Costs**: point-to-plane distances to the nearest model point plus a weaker point-to-point
+//!    term (weight `point_to_point_weight`), both with a Cauchy kernel, so that newly revealed
+//!    surfaces, points of a neighbouring part and label noise cost at most a bounded amount. The
+//!    kernel's scale is the noise of the points, estimated from each frame's residuals (1.4826 x
+//!    their median absolute point-to-plane distance, within `[point_sd_min_m, point_sd_max_m]`):
+//!    a fixed scale would make millimetre motions of a precisely seen part look insignificant. Points within `boundary_m` of a point of
+//!    another part (where segmentation swaps labels) count with `boundary_weight`.
+//! 2. **ICP**: Gauss-Newton with iteratively reweighted correspondences, the first half of the
+//!    iterations matching within `match_gate_m`, the second half within `fine_gate_m`.
+//! 3. **Hypotheses**: the previous pose, the reference pose, and ICP from the previous pose, from
+//!    a constant-velocity prediction and from the previous pose shifted by the motion of the
+//!    points' centroid. Moving away from the previous pose costs
+//!    `move_penalty_nats`: a part whose points are explained as well where it was does not move.
+//!    This stops a static part sliding along directions its visible surface does not constrain (a
+//!    cabinet front is a plane; only its edges fix its position in that plane).
+//! 4. **Growth**: points of the frame (away from other parts) that lie farther than one voxel from
+//!    the model become candidates in a voxel grid of size `voxel_m`; a candidate seen in
+//!    `confirm_frames` different frames joins the model. Transient points — label noise, a door
+//!    resting in front of the cabinet for a moment — are not confirmed in other poses.
+//!
+//! The fit's Gauss-Newton matrix gives the pose covariance, which says which directions the
+//! points constrain (a flat panel does not constrain sliding in its own plane).
+
+use std::collections::HashMap;
+
+use kiddo::{KdTree, SquaredEuclidean};
+use nalgebra::{Isometry3, Matrix3, Matrix6, Translation3, UnitQuaternion, Vector3, Vector6};
+
+use super::geometry::normal_of;
+use super::PerceptionConfig;
+
+/// Neighbours used for a surface normal.
+const NORMAL_NEIGHBOURS: usize = 12;
+/// Largest surface variation of a neighbourhood that still counts as a plane.
+const PLANAR_MAX: f64 = 0.08;
+
+/// Skew-symmetric cross-product matrix `[v]x`.
+pub fn skew(v: &Vector3<f64>) -> Matrix3<f64> {
+    Matrix3::new(0.0, -v.z, v.y, v.z, 0.0, -v.x, -v.y, v.x, 0.0)
+}
+
+fn voxel_key(y: &Vector3<f64>, voxel: f64) -> [i64; 3] {
+    [(y.x / voxel).floor() as i64, (y.y / voxel).floor() as i64, (y.z / voxel).floor() as i64]
+}
+
+#[derive(Debug, Clone)]
+struct Candidate {
+    count: usize,
+    mean: Vector3<f64>,
+    last_frame: usize,
+}
+
+/// A part's surface model in its reference configuration (fixed frame): points, normals and a
+/// k-d tree over them. A point whose neighbourhood is not planar (an edge, a corner, the inside of
+/// a volumetric blob) has no normal and is matched point to point.
+pub struct PartModel {
+    pub points: Vec<Vector3<f64>>,
+    pub normals: Vec<Option<Vector3<f64>>>,
+    tree: KdTree<f64, 3>,
+    occupied: std::collections::HashSet<[i64; 3]>,
+    candidates: HashMap<[i64; 3], Candidate>,
+    /// Model size when every normal was last recomputed.
+    refreshed_at: usize,
+    voxel: f64,
+}
+
+impl std::fmt::Debug for PartModel {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "PartModel({} points)", self.points.len())
+    }
+}
+
+impl PartModel {
+    /// A model from a first set of points (already free of strays), one point per voxel.
+    pub fn new(points: &[Vector3<f64>], voxel: f64) -> PartModel {
+        let mut m = PartModel {
+            points: Vec::new(),
+            normals: Vec::new(),
+            tree: KdTree::new(),
+            occupied: Default::default(),
+            candidates: HashMap::new(),
+            refreshed_at: 0,
+            voxel,
+        };
+        for p in points {
+            m.insert(*p);
+        }
+        m.refresh_normals();
+        m
+    }
+
+    fn insert(&mut self, p: Vector3<f64>) -> bool {
+        if !self.occupied.insert(voxel_key(&p, self.voxel)) {
+            return false;
+        }
+        self.tree.add(&[p.x, p.y, p.z], self.points.len() as u64);
+        self.points.push(p);
+        self.normals.push(None);
+        true
+    }
+
+    fn compute_normal(&self, i: usize) -> Option<Vector3<f64>> {
+        let p = self.points[i];
+        let nb: Vec<Vector3<f64>> = self
+            .tree
+            .nearest_n::<SquaredEuclidean>(&[p.x, p.y, p.z], NORMAL_NEIGHBOURS)
+            .iter()
+            .map(|n| self.points[n.item as usize])
+            .collect();
+        let (n, variation) = normal_of(&nb);
+        (nb.len() >= 4 && variation < PLANAR_MAX).then_some(n)
+    }
+
+    /// Squared residual of `y` against model point `j`: along its normal, or the full distance
+    /// where it has none.
+    fn residual2(&self, j: usize, y: &Vector3<f64>) -> f64 {
+        let e = y - self.points[j];
+        match self.normals[j] {
+            Some(n) => e.dot(&n).powi(2),
+            None => e.norm_squared(),
+        }
+    }
+
+    fn refresh_normals(&mut self) {
+        for i in 0..self.points.len() {
+            self.normals[i] = self.compute_normal(i);
+        }
+        self.refreshed_at = self.points.len();
+    }
+
+    /// Nearest model point to `y` within `gate` \[m\]: its index and squared distance.
+    pub fn nearest(&self, y: &Vector3<f64>, gate: f64) -> Option<(usize, f64)> {
+        if self.points.is_empty() {
+            return None;
+        }
+        let n = self.tree.nearest_one::<SquaredEuclidean>(&[y.x, y.y, y.z]);
+        (n.distance <= gate * gate).then_some((n.item as usize, n.distance))
+    }
+
+    /// Offer points of frame `frame` (reference coordinates, away from other parts) for growth;
+    /// returns how many joined the model.
+    pub fn grow(&mut self, ys: &[Vector3<f64>], frame: usize, confirm: usize, max_points: usize) -> usize {
+        let mut added = Vec::new();
+        for y in ys {
+            if self.points.len() + added.len() >= max_points {
+                break;
+            }
+            if self.nearest(y, 1.5 * self.voxel).is_some() {
+                continue;
+            }
+            let key = voxel_key(y, self.voxel);
+            if self.occupied.contains(&key) {
+                continue;
+            }
+            let c = self.candidates.entry(key).or_insert(Candidate { count: 0, mean: *y, last_frame: usize::MAX });
+            if c.last_frame == frame {
+                continue;
+            }
+            c.count += 1;
+            c.mean += (y - c.mean) / c.count as f64;
+            c.last_frame = frame;
+            if c.count >= confirm {
+                added.push(c.mean);
+                self.candidates.remove(&key);
+            }
+        }
+        let mut n = 0;
+        for p in added {
+            if self.insert(p) {
+                let i = self.points.len() - 1;
+                self.normals[i] = self.compute_normal(i);
+                n += 1;
+            }
+        }
+        // Normals of older points were estimated from sparser neighbourhoods: refresh them all
+        // once the model has grown by a quarter.
+        if self.points.len() > self.refreshed_at + self.refreshed_at / 4 + 8 {
+            self.refresh_normals();
+        }
+        n
+    }
+}
+
+/// Scales of the Cauchy kernels \[m\].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Scales {
+    pub plane: f64,
+    pub point: f64,
+}
+
+impl Scales {
+    fn new(plane: f64, cfg: &PerceptionConfig) -> Scales {
+        let plane = plane.clamp(cfg.point_sd_min_m, cfg.point_sd_max_m);
+        Scales { plane, point: (cfg.point_to_point_ratio * plane).max(cfg.voxel_m) }
+    }
+}
+
+/// The points of one part in one frame with their weights.
+pub struct FramePoints<'a> {
+    /// Points \[m\], fixed frame.
+    pub points: &'a [Vector3<f64>],
+    /// Weight of each point (1, or `boundary_weight` near another part).
+    pub weights: &'a [f64],
+}
+
+/// Robust registration cost of `frame` under `pose` (reference -> fixed frame) and the fraction
+/// of points matched within the fine gate.
+pub fn cost(model: &PartModel, frame: &FramePoints<'_>, pose: &Isometry3<f64>, sc: Scales, cfg: &PerceptionConfig) -> (f64, f64) {
+    let inv = pose.inverse();
+    let (spl, spp, wpp, gate) = (sc.plane, sc.point, cfg.point_to_point_weight, cfg.fine_gate_m);
+    let far = (1.0 + (gate / spl).powi(2)).ln() + wpp * (1.0 + (gate / spp).powi(2)).ln();
+    let (mut c, mut matched) = (0.0, 0usize);
+    for (x, w) in frame.points.iter().zip(frame.weights) {
+        let y = inv * nalgebra::Point3::from(*x);
+        let term = match model.nearest(&y.coords, gate) {
+            Some((j, d2)) => {
+                matched += 1;
+                (1.0 + model.residual2(j, &y.coords) / (spl * spl)).ln() + wpp * (1.0 + d2 / (spp * spp)).ln()
+            }
+            None => far,
+        };
+        c += 0.5 * w * term;
+    }
+    (c, matched as f64 / frame.points.len().max(1) as f64)
+}
+
+/// Gauss-Newton ICP from `start`. Returns the registered pose and the Gauss-Newton matrix of the
+/// last iteration (information about the increment `(w, u)`, `y -> y + w x y + u`, in the
+/// reference configuration), or `None` when too few points match.
+pub fn icp(
+    model: &PartModel,
+    frame: &FramePoints<'_>,
+    start: &Isometry3<f64>,
+    sc: Scales,
+    cfg: &PerceptionConfig,
+) -> Option<(Isometry3<f64>, Matrix6<f64>)> {
+    let (spl, spp, wpp) = (sc.plane, sc.point, cfg.point_to_point_weight);
+    let mut pose = *start;
+    let mut last = None;
+    let iters = cfg.icp_iterations.max(1);
+    for it in 0..iters {
+        let gate = if it < iters / 2 { cfg.match_gate_m } else { cfg.fine_gate_m };
+        let inv = pose.inverse();
+        let (mut a, mut b, mut matched) = (Matrix6::<f64>::zeros(), Vector6::<f64>::zeros(), 0usize);
+        for (x, w) in frame.points.iter().zip(frame.weights) {
+            let y = (inv * nalgebra::Point3::from(*x)).coords;
+            let Some((j, d2)) = model.nearest(&y, gate) else { continue };
+            matched += 1;
+            let m = model.points[j];
+            // d(y + w x y + u)/d(w, u) = [-[y]x, I].
+            let mut jp = nalgebra::Matrix3x6::<f64>::zeros();
+            jp.fixed_view_mut::<3, 3>(0, 0).copy_from(&(-skew(&y)));
+            jp.fixed_view_mut::<3, 3>(0, 3).copy_from(&Matrix3::identity());
+            let wc = w / (1.0 + model.residual2(j, &y) / (spl * spl)) / (spl * spl);
+            match model.normals[j] {
+                // Point to plane: d(n . (y' - m))/d(w, u) = [y x n, n].
+                Some(n) => {
+                    let yn = y.cross(&n);
+                    let jr = Vector6::new(yn.x, yn.y, yn.z, n.x, n.y, n.z);
+                    a += jr * jr.transpose() * wc;
+                    b += jr * ((y - m).dot(&n) * wc);
+                }
+                // No plane here: the full distance at the plane's scale.
+                None => {
+                    a += jp.transpose() * jp * wc;
+                    b += jp.transpose() * (y - m) * wc;
+                }
+            }
+            // The weaker point-to-point term (edges fix a plane's position within it).
+            let wp = w * wpp / (1.0 + d2 / (spp * spp)) / (spp * spp);
+            a += jp.transpose() * jp * wp;
+            b += jp.transpose() * (y - m) * wp;
+        }
+        if matched < cfg.min_points.max(6) {
+            return None;
+        }
+        let damped = a + Matrix6::identity() * (1e-4 * a.trace() / 6.0 + 1e-12);
+        let dx = -(damped.cholesky()?.solve(&b));
+        let delta = Isometry3::from_parts(
+            Translation3::new(dx[3], dx[4], dx[5]),
+            UnitQuaternion::from_scaled_axis(Vector3::new(dx[0], dx[1], dx[2])),
+        );
+        pose *= delta.inverse();
+        last = Some(a);
+        if dx.norm() < 1e-8 {
+            break;
+        }
+    }
+    last.map(|a| (pose, a))
+}
+
+/// Robust noise scale of a fit: 1.4826 x the median absolute point-to-plane distance of the points
+/// matched within the fine gate.
+fn residual_scale(model: &PartModel, frame: &FramePoints<'_>, pose: &Isometry3<f64>, cfg: &PerceptionConfig) -> Option<f64> {
+    let inv = pose.inverse();
+    let mut r: Vec<f64> = frame
+        .points
+        .iter()
+        .filter_map(|x| {
+            let y = (inv * nalgebra::Point3::from(*x)).coords;
+            // Per axis: a distance without a plane spreads over three directions.
+            model.nearest(&y, cfg.fine_gate_m).map(|(j, _)| {
+                let r2 = model.residual2(j, &y);
+                if model.normals[j].is_some() { r2.sqrt() } else { (r2 / 3.0).sqrt() }
+            })
+        })
+        .collect();
+    if r.len() < cfg.min_points.max(6) {
+        return None;
+    }
+    r.sort_by(|a, b| a.total_cmp(b));
+    Some(1.4826 * r[r.len() / 2])
+}
+
+/// The result of registering one frame.
+#[derive(Debug, Clone)]
+pub struct Registered {
+    pub pose: Isometry3<f64>,
+    /// Gauss-Newton information about `(w, u)` at `pose` (see [`icp`]).
+    pub information: Matrix6<f64>,
+    /// Fraction of points matched within the fine gate.
+    pub matched: f64,
+}
+
+/// Tracks one part: its model and its pose over time.
+#[derive(Debug)]
+pub struct Tracker {
+    pub model: PartModel,
+    pub pose: Isometry3<f64>,
+    previous: Isometry3<f64>,
+    frames: usize,
+    scales: Scales,
+    /// Centroid of the previous frame's points \[m\].
+    centroid: Option<Vector3<f64>>,
+}
+
+impl Tracker {
+    /// Start tracking from the part's first points (fixed frame): the reference configuration
+    /// is the part's pose at this frame.
+    pub fn new(points: &[Vector3<f64>], cfg: &PerceptionConfig) -> Tracker {
+        Tracker {
+            model: PartModel::new(points, cfg.voxel_m),
+            pose: Isometry3::identity(),
+            previous: Isometry3::identity(),
+            frames: 1,
+            scales: Scales::new(cfg.point_sd_max_m, cfg),
+            centroid: Some(points.iter().sum::<Vector3<f64>>() / points.len().max(1) as f64),
+        }
+    }
+
+    /// Register a frame, choose among the hypotheses, grow the model. `None` when no hypothesis
+    /// matches enough points (the pose is then kept).
+    pub fn update(&mut self, frame: &FramePoints<'_>, cfg: &PerceptionConfig) -> Option<Registered> {
+        let frame_index = self.frames;
+        self.frames += 1;
+        let mut hyps: Vec<(Isometry3<f64>, f64)> = vec![(self.pose, 0.0), (Isometry3::identity(), cfg.reference_penalty_nats)];
+        // Constant-velocity prediction: the last motion applied once more; and the previous pose
+        // shifted by the motion of the points' centroid (biased by changes of the visible surface,
+        // but immune to the local minima of a regular structure).
+        let predicted = self.pose * (self.previous.inverse() * self.pose);
+        let centroid = frame.points.iter().sum::<Vector3<f64>>() / frame.points.len().max(1) as f64;
+        let shifted = Translation3::from(centroid - self.centroid.unwrap_or(centroid)) * self.pose;
+        self.centroid = Some(centroid);
+        let mut info = None;
+        for start in [self.pose, predicted, shifted] {
+            if let Some((p, a)) = icp(&self.model, frame, &start, self.scales, cfg) {
+                if info.is_none() {
+                    // The noise of this frame's points, from the residuals of the first fit.
+                    if let Some(s) = residual_scale(&self.model, frame, &p, cfg) {
+                        self.scales = Scales::new(s, cfg);
+                    }
+                }
+                hyps.push((p, cfg.move_penalty_nats));
+                info.get_or_insert(a);
+            }
+        }
+        let mut best: Option<(f64, f64, Isometry3<f64>)> = None;
+        for (p, penalty) in hyps {
+            let (c, matched) = cost(&self.model, frame, &p, self.scales, cfg);
+            if best.as_ref().is_none_or(|b| c + penalty < b.0) {
+                best = Some((c + penalty, matched, p));
+            }
+        }
+        let (_, matched, pose) = best?;
+        if matched * (frame.points.len() as f64) < cfg.min_points.max(6) as f64 {
+            return None;
+        }
+        self.previous = self.pose;
+        self.pose = pose;
+        // The information at the chosen pose (one Gauss-Newton pass from it, no step kept).
+        let information = icp_information(&self.model, frame, &pose, self.scales, cfg).or(info).unwrap_or_else(Matrix6::zeros);
+        let inv = pose.inverse();
+        let grow: Vec<Vector3<f64>> = frame
+            .points
+            .iter()
+            .zip(frame.weights)
+            .filter(|(_, w)| **w >= 1.0)
+            .map(|(x, _)| (inv * nalgebra::Point3::from(*x)).coords)
+            .collect();
+        // While a part rests in its reference pose at the start of its track, its points need no
+        // confirmation: they are registered exactly, and densify the first frame's sparse model.
+        let confirm = if frame_index < cfg.initial_frames && pose == Isometry3::identity() { 1 } else { cfg.confirm_frames };
+        self.model.grow(&grow, frame_index, confirm, cfg.max_model_points);
+        Some(Registered { pose, information, matched })
+    }
+}
+
+/// The Gauss-Newton matrix of the registration cost at `pose` (fine gate).
+fn icp_information(model: &PartModel, frame: &FramePoints<'_>, pose: &Isometry3<f64>, sc: Scales, cfg: &PerceptionConfig) -> Option<Matrix6<f64>> {
+    let one = PerceptionConfig { icp_iterations: 1, match_gate_m: cfg.fine_gate_m, ..cfg.clone() };
+    icp(model, frame, pose, sc, &one).map(|(_, a)| a)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    /// Points on the surface of a box: a sparse random sample per frame.
+    fn box_surface(rng: &mut impl Rng, n: usize, size: Vector3<f64>) -> Vec<Vector3<f64>> {
+        (0..n)
+            .map(|_| {
+                let mut p = Vector3::new(rng.random_range(-0.5..0.5), rng.random_range(-0.5..0.5), rng.random_range(-0.5..0.5));
+                let k = rng.random_range(0..3);
+                p[k] = if rng.random_bool(0.5) { 0.5 } else { -0.5 };
+                p.component_mul(&size)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn tracks_a_sparse_noisy_box_through_a_turn() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(4);
+        let cfg = PerceptionConfig::default();
+        let size = Vector3::new(0.4, 0.25, 0.1);
+        let centre = Vector3::new(0.3, 0.2, 0.9);
+        let noise = rand_distr::Normal::new(0.0, 0.003).unwrap();
+        let sample = |rng: &mut rand_chacha::ChaCha8Rng, pose: &Isometry3<f64>| -> Vec<Vector3<f64>> {
+            box_surface(rng, 150, size)
+                .iter()
+                .map(|p| (pose * nalgebra::Point3::from(p + centre)).coords + Vector3::from_fn(|_, _| rng.sample(noise)))
+                .collect()
+        };
+        let first = sample(&mut rng, &Isometry3::identity());
+        let mut tr = Tracker::new(&first, &cfg);
+        let hinge = Vector3::new(0.1, 0.2, 0.9);
+        let mut worst: f64 = 0.0;
+        for k in 1..60 {
+            // Still for 10 frames, then turning about a vertical hinge at 2 degrees a frame.
+            let angle = (k as f64 - 10.0).max(0.0) * 2f64.to_radians();
+            let rot = UnitQuaternion::from_scaled_axis(Vector3::z() * angle);
+            let truth = Isometry3::from_parts(Translation3::from(hinge - rot * hinge), rot);
+            let pts = sample(&mut rng, &truth);
+            let w = vec![1.0; pts.len()];
+            let reg = tr.update(&FramePoints { points: &pts, weights: &w }, &cfg).expect("registers");
+            let err = (reg.pose * nalgebra::Point3::from(centre) - truth * nalgebra::Point3::from(centre)).norm();
+            worst = worst.max(err);
+            if k < 10 {
+                assert!(err < 0.005, "a still part stays where it is: {err} m at frame {k}");
+            }
+        }
+        assert!(worst < 0.01, "centre error {worst} m");
+        assert!(tr.model.points.len() > 150, "the model grew: {}", tr.model.points.len());
+    }
+}
