@@ -133,8 +133,7 @@ pub fn replay(bags: &[PathBuf], cfg: &Config) -> Result<Run, ReplayError> {
     let mut warm = None;
     for w in 0..windows.len() {
         pb.set_message(format!("BOM-SVI after window {}/{}", w + 1, windows.len()));
-        let wr: &[input::WrenchSample] = if std::env::var_os("BOM_KIN").is_some() { &[] } else { &recording.wrenches };
-        let ev = Evidence::new(&tracks, &geometry, &windows[..=w], wr, &springs, &grid(cfg));
+        let ev = Evidence::new(&tracks, &geometry, &windows[..=w], &recording.wrenches, &springs, &grid(cfg));
         if let Some(fitted) = svi::fit(&ev, &cfg.model, &cfg.inference, warm.as_ref()) {
             updates.push(Update { stamp: windows[w].end, num_windows: w + 1, posterior: fitted.posterior });
             warm = Some(fitted.guide);

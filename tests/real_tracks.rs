@@ -48,7 +48,9 @@ fn joint_types_of_every_real_track() {
     }
 }
 
-/// The first 10% of a door track says less than the whole track.
+/// The first 10% of a door track (15 frames, 0.5 s, the handle moving 13 mm at 1-3 mm noise) says
+/// less than the whole track: it has moved, so it is not rigid, but a 13 mm arc of a door is not
+/// yet known to be an arc, so the whole track's certainty that it is revolute is not there yet.
 #[test]
 fn a_tenth_of_a_door_track_is_less_certain() {
     let dir = tempfile::tempdir().unwrap();
@@ -60,9 +62,9 @@ fn a_tenth_of_a_door_track_is_less_certain() {
     let (full, tenth) = (dir.path().join("full.mcap"), dir.path().join("tenth.mcap"));
     bom::import::import_tracks(std::slice::from_ref(&src), &full, None, 30.0, 4).unwrap();
     bom::import::import_tracks(&[part], &tenth, None, 30.0, 4).unwrap();
-    let top = |p: [f64; 3]| p.iter().cloned().fold(0.0, f64::max);
     let (pf, pt) = (type_probs(&replay(&[full])), type_probs(&replay(&[tenth])));
     println!("whole track {pf:?}, first tenth {pt:?}");
     assert!(pf[2] > 0.95, "whole door track: {pf:?}");
-    assert!(top(pt) < top(pf) - 0.1, "first tenth {pt:?} is not clearly less certain than {pf:?}");
+    assert!(pt[2] < pf[2] - 0.1, "first tenth {pt:?} is as sure of the door as the whole track {pf:?}");
+    assert!(pt[0] < 0.5, "the first tenth moved 13 mm at 1-3 mm noise, yet P(rigid) = {}", pt[0]);
 }

@@ -76,6 +76,9 @@ class ObjectSpec:
     # joint name -> viscous damping replacing the shipped value (N s/m or N m s/rad): the shipped
     # sliders have so little damping that any push that moves them also slams them into a stop
     damping: dict = field(default_factory=dict)
+    # seconds simulated (and not recorded) before the recording starts, so that a model whose
+    # initial pose is not at rest (contacts resolving) is at rest when the camera starts
+    settle_s: float = 0.0
 
 
 def kitchen_model(item):
@@ -114,9 +117,12 @@ OBJECTS = {
     "adroit_door": lambda: ObjectSpec(
         "adroit_door", [("adroit", _site_packages("gymnasium_robotics") / "envs/assets/adroit_hand/adroit_door.xml")],
         {"frame": ["frame"], "door": ["door"], "latch": ["latch"]},
-        {"door_hinge": ("body", "door", (-0.1, -0.05, 0.15)), "latch": ("site", "S_handle", (40.0, 55.0))},
+        {"door_hinge": ("body", "door", (-0.1, -0.05, 0.15)), "latch": ("site", "S_handle", (34.5, 37.0))},
         camera_pos=(0.45, -1.5, 0.95), camera_target=(0.25, 0.0, 0.4),
-        force_range=(9.0, 14.0)),
+        # The shipped latch has damping 0.05 against friction 5 N m: a push that overcomes the
+        # friction spins it into its stop at 16 rad/s; damping 1 N m s/rad and a push just above
+        # the friction turn it at under 1 rad/s.
+        force_range=(9.0, 14.0), damping={"latch": 1.0}, settle_s=1.0),
     # A nested chain: a microwave standing on the sliding door of the slide cabinet, so the
     # microwave's door hinges on a part that itself slides (composed with MjSpec.attach_body).
     "slide_microwave": lambda: ObjectSpec(
@@ -298,6 +304,9 @@ class Recorder:
             lo, hi = m.jnt_range[j]
             self.data.qpos[m.jnt_qposadr[j]] = lo + 0.15 * (hi - lo) if abs(lo) <= abs(hi) else hi - 0.15 * (hi - lo)
         mujoco.mj_forward(m, self.data)
+        for _ in range(int(round(spec_obj.settle_s / m.opt.timestep))):
+            mujoco.mj_step(m, self.data)
+        self.data.time = 0.0
         # Part label of every body: its own or its nearest listed ancestor's (0 = no part).
         self.part_names = list(spec_obj.parts)
         body_label = {}
@@ -537,7 +546,9 @@ class Recorder:
         self.limits_reached = []
         for jname in joints:
             lo, hi = m.jnt_range[self.joint_id(jname)]
-            if q_min[jname] < lo + 1e-3 or q_max[jname] > hi - 1e-3:
+            # Within 2% of the range of a stop counts as reaching it (a soft limit lets the joint
+            # sit a little inside).
+            if q_min[jname] < lo + 0.02 * (hi - lo) or q_max[jname] > hi - 0.02 * (hi - lo):
                 self.limits_reached.append(jname)
             print(f"  {jname}: q in [{q_min[jname]:.3f}, {q_max[jname]:.3f}] of range [{lo:.3f}, {hi:.3f}]")
         return duration

@@ -18,7 +18,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 
 use crate::model::likelihood::Evidence;
-use crate::model::{decode, dynamics, JointParams, JointType, ModelConfig};
+use crate::model::{decode, dynamics, Displacement, JointParams, JointType, ModelConfig};
 
 /// A full-rank Gaussian block `xi = mu + L eps` over `dim` standardised parameters: `mu` at
 /// `mu..mu+dim`, the lower triangle of `L` row by row at `chol..`, its diagonal stored as logs.
@@ -168,9 +168,14 @@ pub struct GuideState {
 }
 
 /// Per-parameter learning rates of the layout.
-pub fn learning_rates(layout: &Layout, global: f64, coordinate: f64) -> Vec<f64> {
+pub fn learning_rates(layout: &Layout, global: f64, coordinate: f64, kinodynamic: f64) -> Vec<f64> {
     let mut lr = vec![global; layout.len];
     for b in layout.blocks.iter().flatten() {
+        if let Some(kd) = b.kd {
+            for v in lr.iter_mut().skip(kd.mu).take(KdBlock::len(kd.dim)) {
+                *v = kinodynamic;
+            }
+        }
         if let Some((qm, _)) = b.q {
             let frames = b.q.map(|(m, s)| s - m).unwrap_or(0);
             for v in lr.iter_mut().skip(qm).take(frames) {
@@ -181,45 +186,26 @@ pub fn learning_rates(layout: &Layout, global: f64, coordinate: f64) -> Vec<f64>
     lr
 }
 
-/// Initialise the guide from the data: axes by principal components, rotations and circle fits,
-/// coordinates by projection, the noises from the initial residuals, kinodynamics at their prior
-/// medians; parent logits are set by the caller.
-pub fn init_from_data(ev: &Evidence, model: &ModelConfig, layout: &Layout, init_global_sd: f64, init_coordinate_sd: f64, init_kd_sd: f64) -> Vec<f64> {
+/// Initialise the guide from the data: every block of part `i` from its motion relative to the
+/// observed motion of its parent `parents[i]` ([`init_block`]), kinodynamics at their prior
+/// medians; logits are set by the caller.
+pub fn init_from_data(
+    ev: &Evidence,
+    model: &ModelConfig,
+    layout: &Layout,
+    parents: &[usize],
+    init_global_sd: f64,
+    init_coordinate_sd: f64,
+    init_kd_sd: f64,
+) -> Vec<f64> {
     let k_frames = ev.len();
     let mut theta = vec![0.0; layout.len];
-    for (i, part) in ev.parts.iter().enumerate() {
-        let seen: Vec<(usize, Vector3<f64>)> = part.obs.iter().enumerate().filter_map(|(t, o)| o.map(|o| (t, o.y))).collect();
-        let track: Vec<Vector3<f64>> = seen.iter().map(|s| s.1).collect();
+    for i in 0..ev.parts.len() {
+        let pre = super::structure::observed_displacements(ev, parents[i]);
         for b in &layout.blocks[i] {
-            let np = b.joint.num_params();
-            let mut mu = vec![0.0; np];
-            let q_seen: Vec<f64> = match b.joint {
-                JointType::Rigid => vec![0.0; track.len()],
-                JointType::Prismatic => {
-                    let (v, q) = crate::model::prismatic::init(&track, &part.com0);
-                    mu[crate::model::rigid::NUM_PARAMS..].copy_from_slice(&v);
-                    q
-                }
-                JointType::Revolute => {
-                    // From the observed rotations where the part's shape shows them, else from
-                    // the arc of its centre of mass.
-                    let rots: Option<Vec<nalgebra::Matrix3<f64>>> = seen.iter().map(|(t, _)| part.rot[*t].as_ref().map(|r| r.r)).collect();
-                    let (v, q) = rots
-                        .and_then(|r| crate::model::revolute::init_from_rotations(&track, &r, &part.com0, model))
-                        .unwrap_or_else(|| crate::model::revolute::init(&track, &part.com0, model));
-                    mu[crate::model::rigid::NUM_PARAMS..].copy_from_slice(&v);
-                    q
-                }
-            };
-            let q = hold_over_occlusions(&seen, &q_seen, k_frames);
-            let p = decode::<f64>(b.joint, &mu, &part.com0, model);
-            let (pos, rot) = residual_rms(ev, i, &p, &q);
-            mu[3] = ((pos.max(1e-4) / model.noise_median_m).ln() / model.noise_log_sd).clamp(-3.0, 3.0);
-            if let Some(r) = rot {
-                mu[4] = ((r.max(1e-4) / model.rotation_noise_median_rad).ln() / model.rotation_noise_log_sd).clamp(-3.0, 3.0);
-            }
-            for j in 0..np {
-                theta[b.mu + j] = mu[j];
+            let (mu, q) = init_block(ev, i, b.joint, &pre, model);
+            for (j, m) in mu.iter().enumerate() {
+                theta[b.mu + j] = *m;
                 theta[b.log_s + j] = init_global_sd.ln();
             }
             if let Some((qm, qs)) = b.q {
@@ -243,11 +229,50 @@ pub fn init_from_data(ev: &Evidence, model: &ModelConfig, layout: &Layout, init_
     theta
 }
 
-/// Coordinates on the whole grid from the values at the seen frames, held over occlusions; the
-/// first grid frame is the reference (0).
+/// Standardised parameters (means) and coordinates of joint type `joint` for part `i` from its
+/// motion relative to a parent whose displacement at each grid frame is `pre`: axes by principal
+/// components, observed rotations or circle fits, coordinates by projection, the noises from the
+/// residuals of that fit.
+pub fn init_block(ev: &Evidence, i: usize, joint: JointType, pre: &[Displacement<f64>], model: &ModelConfig) -> (Vec<f64>, Vec<f64>) {
+    let part = &ev.parts[i];
+    let inv: Vec<Displacement<f64>> = pre.iter().map(|d| Displacement { r: d.r.transpose(), t: -(d.r.transpose() * d.t) }).collect();
+    let seen: Vec<(usize, Vector3<f64>)> = part.obs.iter().enumerate().filter_map(|(t, o)| o.map(|o| (t, inv[t].apply(&o.y)))).collect();
+    let track: Vec<Vector3<f64>> = seen.iter().map(|s| s.1).collect();
+    let np = joint.num_params();
+    let mut mu = vec![0.0; np];
+    let q_seen: Vec<f64> = match joint {
+        JointType::Rigid => vec![0.0; track.len()],
+        JointType::Prismatic => {
+            let (v, q) = crate::model::prismatic::init(&track, &part.com0);
+            mu[crate::model::rigid::NUM_PARAMS..].copy_from_slice(&v);
+            q
+        }
+        JointType::Revolute => {
+            // From the observed rotations where the part's shape shows them, else from the arc
+            // of its centre of mass.
+            let rots: Option<Vec<nalgebra::Matrix3<f64>>> = seen.iter().map(|(t, _)| part.rot[*t].as_ref().map(|r| inv[*t].r * r.r)).collect();
+            let (v, q) = rots
+                .and_then(|r| crate::model::revolute::init_from_rotations(&track, &r, &part.com0, model))
+                .unwrap_or_else(|| crate::model::revolute::init(&track, &part.com0, model));
+            mu[crate::model::rigid::NUM_PARAMS..].copy_from_slice(&v);
+            q
+        }
+    };
+    let q = hold_over_occlusions(&seen, &q_seen, ev.len());
+    let p = decode::<f64>(joint, &mu, &part.com0, model);
+    let (pos, rot) = residual_rms(ev, i, &p, &q, pre);
+    mu[3] = ((pos.max(1e-4) / model.noise_median_m).ln() / model.noise_log_sd).clamp(-3.0, 3.0);
+    if let Some(r) = rot {
+        mu[4] = ((r.max(1e-4) / model.rotation_noise_median_rad).ln() / model.rotation_noise_log_sd).clamp(-3.0, 3.0);
+    }
+    (mu, q)
+}
+
+/// Coordinates on the whole grid from the values at the seen frames, held over occlusions (and
+/// back to the start from the first seen frame).
 fn hold_over_occlusions(seen: &[(usize, Vector3<f64>)], q_seen: &[f64], frames: usize) -> Vec<f64> {
     let mut q = vec![0.0; frames];
-    let mut last = 0.0;
+    let mut last = q_seen.first().copied().unwrap_or(0.0);
     let mut it = seen.iter().zip(q_seen).peekable();
     for (t, qt) in q.iter_mut().enumerate() {
         while let Some(((ts, _), qv)) = it.peek() {
@@ -258,18 +283,18 @@ fn hold_over_occlusions(seen: &[(usize, Vector3<f64>)], q_seen: &[f64], frames: 
                 break;
             }
         }
-        *qt = if t == 0 { 0.0 } else { last };
+        *qt = last;
     }
     q
 }
 
-/// Root-mean-square residuals of a fit: position per axis \[m\] and rotation per observable axis
-/// \[rad\] (None without rotation observations).
-fn residual_rms(ev: &Evidence, i: usize, p: &JointParams<f64>, q: &[f64]) -> (f64, Option<f64>) {
+/// Root-mean-square residuals of a fit under the parent's displacements `pre`: position per axis
+/// \[m\] and rotation per observable axis \[rad\] (None without rotation observations).
+fn residual_rms(ev: &Evidence, i: usize, p: &JointParams<f64>, q: &[f64], pre: &[Displacement<f64>]) -> (f64, Option<f64>) {
     let part = &ev.parts[i];
     let (mut ss, mut cnt, mut rs, mut rc) = (0.0, 0.0, 0.0, 0.0);
     for t in 0..ev.len() {
-        let d = crate::model::displacement(p, q[t]);
+        let d = pre[t].compose(&crate::model::displacement(p, q[t]));
         if let Some(o) = &part.obs[t] {
             ss += (o.y - d.apply(&p.com)).norm_squared() / 3.0;
             cnt += 1.0;

@@ -64,7 +64,7 @@ pub fn joints(
                 decode::<f64>(jt, &theta[bl.mu..bl.mu + jt.num_params()], &ev.parts[i].com0, model)
             });
             let coordinates: [Vec<f64>; 3] = JointType::ALL.map(|jt| match layout.blocks[i][jt.index()].q {
-                Some((qm, _)) => (0..ev.len()).map(|t| if t == 0 { 0.0 } else { theta[qm + t] }).collect(),
+                Some((qm, _)) => (0..ev.len()).map(|t| theta[qm + t]).collect(),
                 None => vec![0.0; ev.len()],
             });
             let parent_probs: Vec<(u32, f64)> =

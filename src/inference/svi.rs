@@ -47,6 +47,7 @@ use serde::{Deserialize, Serialize};
 
 use super::adam::Adam;
 use super::guide::{self, Block, GuideState, Layout};
+use super::structure;
 use super::summary::{self, softmax};
 use super::Posterior;
 use crate::model::dynamics::{self, JointInWindow, SubtreeBody};
@@ -68,7 +69,8 @@ pub struct SviConfig {
     pub min_iters: usize,
     pub max_iters: usize,
     /// Convergence tests every `check_every` iterations. Phase 1 ends when the summed conditional
-    /// ELBOs changed by less than `tol_nats + tol_rel * |ELBO|` between blocks; phase 2 when no
+    /// ELBOs changed by less than `tol_nats + tol_rel * |ELBO|` between blocks, or by less than
+    /// twice the Monte Carlo standard error of that change; phase 2 when no
     /// probability of the discrete guide moved by more than `tol_prob` between blocks, after at
     /// least `min_discrete_iters`.
     pub check_every: usize,
@@ -80,10 +82,12 @@ pub struct SviConfig {
     /// discrete logits are averaged (Polyak) for the reported probabilities.
     pub final_iters: usize,
     pub final_lr_scale: f64,
-    /// Adam learning rates: standardised kinematic and kinodynamic parameters (means and
-    /// log-sds), coordinates \[m\].
+    /// Adam learning rates: standardised kinematic parameters (means and log-sds), coordinates
+    /// \[m\], standardised kinodynamic parameters (0: those are updated by Laplace steps only,
+    /// see `laplace_kinodynamics`).
     pub lr_global: f64,
     pub lr_coordinate_m: f64,
+    pub lr_kinodynamic: f64,
     /// Natural-gradient step of the discrete factors per iteration.
     pub discrete_step: f64,
     /// Gumbel-softmax temperature and rounding threshold of the tree sampler (paper §3.3).
@@ -119,6 +123,7 @@ impl Default for SviConfig {
             final_lr_scale: 0.3,
             lr_global: 0.03,
             lr_coordinate_m: 0.002,
+            lr_kinodynamic: 0.0,
             discrete_step: 0.1,
             tau: 0.5,
             delta: 0.5,
@@ -146,7 +151,7 @@ struct BlockSample {
 }
 
 /// A descendant of the part being differentiated, expressed relative to that part's frame.
-struct Member {
+pub(crate) struct Member {
     /// Part index.
     m: usize,
     /// Centre of mass per frame relative to the part's displacement (f64).
@@ -163,7 +168,7 @@ struct Member {
 /// `pre[t]` is the parent's displacement at frame `t`; `subtree` the descendants relative to
 /// part `i`'s frame. Rotations, where observable, add their likelihood.
 #[allow(clippy::too_many_arguments)]
-fn block_pass(
+pub(crate) fn block_pass(
     ev: &Evidence,
     i: usize,
     joint: JointType,
@@ -183,7 +188,7 @@ fn block_pass(
         if own_obs.is_none() && !any_sub {
             continue;
         }
-        let qt = if joint.movable() && t > 0 { D::from_re(q[t]).derivative(Q_SLOT) } else { D::from_re(q[t]) };
+        let qt = if joint.movable() { D::from_re(q[t]).derivative(Q_SLOT) } else { D::from_re(q[t]) };
         let s = pre[t].lift::<D>().compose(&displacement(&p, qt));
         let mut ll = D::from_re(0.0);
         if let Some(o) = own_obs {
@@ -269,8 +274,8 @@ fn sample_block(ev: &Evidence, i: usize, b: &Block, theta: &[f64], model: &Model
     let k = ev.len();
     let (q_eps, q) = match b.q {
         Some((qm, qs)) => {
-            let e: Vec<f64> = (0..k).map(|t| if t == 0 { 0.0 } else { StandardNormal.sample(rng) }).collect();
-            let q = (0..k).map(|t| if t == 0 { 0.0 } else { theta[qm + t] + theta[qs + t].exp() * e[t] }).collect();
+            let e: Vec<f64> = (0..k).map(|_| StandardNormal.sample(rng)).collect();
+            let q = (0..k).map(|t| theta[qm + t] + theta[qs + t].exp() * e[t]).collect();
             (e, q)
         }
         None => (vec![0.0; k], vec![0.0; k]),
@@ -278,6 +283,125 @@ fn sample_block(ev: &Evidence, i: usize, b: &Block, theta: &[f64], model: &Model
     let params = decode(b.joint, &xi, &ev.parts[i].com0, model);
     let kd = b.kd.map(|kd| kd.sample(theta, rng));
     BlockSample { eps, xi, q_eps, q, params, kd }
+}
+
+/// A block at its guide means (no noise).
+fn mean_block(ev: &Evidence, i: usize, b: &Block, theta: &[f64], model: &ModelConfig) -> BlockSample {
+    let np = b.joint.num_params();
+    let xi = theta[b.mu..b.mu + np].to_vec();
+    let k = ev.len();
+    let q = b.q.map(|(qm, _)| theta[qm..qm + k].to_vec()).unwrap_or_else(|| vec![0.0; k]);
+    let params = decode(b.joint, &xi, &ev.parts[i].com0, model);
+    let kd = b.kd.map(|kd| (vec![0.0; kd.dim], theta[kd.mu..kd.mu + kd.dim].to_vec()));
+    BlockSample { eps: vec![0.0; np], xi, q_eps: vec![0.0; k], q, params, kd }
+}
+
+/// Laplace updates of the kinodynamic factors (dynamic mode): for every movable block, the mode of
+/// its physics prior plus its standard-normal prior, given the current coordinate means (and, at
+/// the `initial` call, after a coarse grid over damping and friction to find the basin), by
+/// Levenberg-damped Newton steps on dual-number gradients with a finite-difference Hessian; the
+/// guide's Gaussian is then centred there with the inverse negative Hessian as its covariance.
+///
+/// Why not Adam alone: damping and friction trade off along a long, narrow ridge of the posterior
+/// (a push moves as far with more damping and less friction), along which Adam's per-coordinate
+/// steps crawl for thousands of iterations; the coordinate means, the only other input, move little
+/// once the kinematic fit has settled. `parent` and `types` give the tree and the joint type of
+/// every other part.
+fn laplace_kinodynamics(ev: &Evidence, layout: &Layout, theta: &mut [f64], parent: &[usize], types: &[usize], model: &ModelConfig, initial: bool) {
+    let n = ev.parts.len();
+    let k_frames = ev.len();
+    let means: Vec<Vec<BlockSample>> = (0..n).map(|i| layout.blocks[i].iter().map(|b| mean_block(ev, i, b, theta, model)).collect()).collect();
+    let chosen: Vec<&BlockSample> = (0..n).map(|i| &means[i][types[i]]).collect();
+    let transforms = part_transforms(parent, &chosen, k_frames);
+    for i in 0..n {
+        let pre = if parent[i] == 0 { vec![Displacement::identity(); k_frames] } else { transforms[parent[i] - 1].clone() };
+        let desc = descendants(parent, i);
+        for b in &layout.blocks[i] {
+            let Some(kd) = b.kd else { continue };
+            let mut s = mean_block(ev, i, b, theta, model);
+            // Log posterior of the block (physics prior + N(0, I)) and its gradient.
+            let mut post = |xi: &[f64]| {
+                s.kd = Some((vec![0.0; kd.dim], xi.to_vec()));
+                let (l, g, _) = dynamics_pass(ev, i, &s, &pre, &desc, &chosen, &transforms, model);
+                let l = l - 0.5 * xi.iter().map(|x| x * x).sum::<f64>();
+                let g: Vec<f64> = g.iter().zip(xi).map(|(g, x)| g - x).collect();
+                (l, g)
+            };
+            let mut x: Vec<f64> = theta[kd.mu..kd.mu + kd.dim].to_vec();
+            if initial {
+                // A coarse grid over +-2 prior sds of damping and friction, then a finer one.
+                let mut best = (f64::NEG_INFINITY, 0.0, 0.0);
+                for step in [0.75, 0.2] {
+                    let c = if step < 0.5 { (best.1, best.2) } else { (0.0, 0.0) };
+                    for a in -3..=3 {
+                        for m in -3..=3 {
+                            let (xb, xm) = (c.0 + step * a as f64, c.1 + step * m as f64);
+                            (x[0], x[1], x[2], x[3]) = (xb, xm, 0.0, 1.0);
+                            let l = post(&x).0;
+                            if l > best.0 {
+                                best = (l, xb, xm);
+                            }
+                        }
+                    }
+                }
+                (x[0], x[1], x[2], x[3]) = (best.1, best.2, 0.0, 1.0);
+            }
+            let hessian = |post: &mut dyn FnMut(&[f64]) -> (f64, Vec<f64>), x: &[f64]| {
+                let d = x.len();
+                let mut h = nalgebra::DMatrix::<f64>::zeros(d, d);
+                for j in 0..d {
+                    let e = 1e-4;
+                    let (mut a, mut b) = (x.to_vec(), x.to_vec());
+                    a[j] += e;
+                    b[j] -= e;
+                    let (ga, gb) = (post(&a).1, post(&b).1);
+                    for r in 0..d {
+                        h[(r, j)] = (ga[r] - gb[r]) / (2.0 * e);
+                    }
+                }
+                (h.clone() + h.transpose()) * 0.5
+            };
+            let (mut fx, mut gx) = post(&x);
+            let mut lambda = 1e-3;
+            for _ in 0..12 {
+                let neg_h = -hessian(&mut post, &x);
+                let mut improved = false;
+                for _ in 0..8 {
+                    let damped = &neg_h + nalgebra::DMatrix::identity(kd.dim, kd.dim) * (lambda * (1.0 + neg_h.trace().abs() / kd.dim as f64));
+                    let Some(chol) = damped.cholesky() else {
+                        lambda *= 10.0;
+                        continue;
+                    };
+                    let step = chol.solve(&nalgebra::DVector::from_column_slice(&gx));
+                    let trial: Vec<f64> = x.iter().zip(step.iter()).map(|(a, s)| a + s.clamp(-1.0, 1.0)).collect();
+                    let (ft, gt) = post(&trial);
+                    if ft.is_finite() && ft > fx {
+                        (x, fx, gx) = (trial, ft, gt);
+                        lambda = (lambda * 0.3).max(1e-6);
+                        improved = true;
+                        break;
+                    }
+                    lambda *= 10.0;
+                }
+                if !improved || gx.iter().map(|g| g * g).sum::<f64>().sqrt() < 1e-3 {
+                    break;
+                }
+            }
+            theta[kd.mu..kd.mu + kd.dim].copy_from_slice(&x);
+            // Covariance: the inverse negative Hessian at the mode, where it is positive definite.
+            let neg_h = -hessian(&mut post, &x);
+            if let Some(cov) = neg_h.clone().cholesky().map(|c| c.inverse()) {
+                if let Some(l) = cov.cholesky() {
+                    let l = l.l();
+                    for r in 0..kd.dim {
+                        for c in 0..=r {
+                            theta[kd.chol + r * (r + 1) / 2 + c] = if r == c { l[(r, r)].max(1e-6).ln() } else { l[(r, c)] };
+                        }
+                    }
+                }
+            }
+        }
+    }
 }
 
 /// The physics prior of block `k` of part `i` over all windows (dynamic mode) and its gradients:
@@ -364,8 +488,7 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
         return None;
     }
     let layout = Layout::new(n, k_frames, &guide::kd_dims(ev));
-    let mut theta = guide::init_from_data(ev, model, &layout, cfg.init_global_sd, cfg.init_coordinate_sd_m, cfg.init_kinodynamic_sd);
-    let lr = guide::learning_rates(&layout, cfg.lr_global, cfg.lr_coordinate_m);
+    let lr = guide::learning_rates(&layout, cfg.lr_global, cfg.lr_coordinate_m, cfg.lr_kinodynamic);
     let mut adam = Adam::new(layout.len);
     let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
     let gumbel = Gumbel::new(0.0, 1.0).expect("valid Gumbel");
@@ -375,10 +498,28 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
         .into_iter()
         .map(|r| r.into_iter().map(|v| v.max(-30.0)).collect())
         .collect();
+    // The initial structure: each part's motion relative to every candidate parent (structure).
+    // The guide starts from it: blocks fitted relative to the chosen parents, parent logits at the
+    // prior plus each attachment's score, type logits at the prior plus each type's score.
+    let start = structure::initial_structure(ev, model, &log_w);
+    let mut theta =
+        guide::init_from_data(ev, model, &layout, &start.parent, cfg.init_global_sd, cfg.init_coordinate_sd_m, cfg.init_kinodynamic_sd);
     for i in 0..n {
+        let o = layout.parent_logits[i];
         for j in 0..=n {
-            theta[layout.parent_logits[i] + j] = if j == i + 1 { -1e9 } else { log_w[i][j] };
+            theta[o + j] = if j == i + 1 { -1e9 } else { (log_w[i][j] + start.parent_score[i][j]).max(-1e6) };
         }
+        recentre(&mut theta[o..o + n + 1], &(0..=n).filter(|&j| j != i + 1).collect::<Vec<_>>());
+        let o = layout.type_logits[i];
+        for k in 0..3 {
+            theta[o + k] = log_prior_type[k] + start.type_score[i][k];
+        }
+        recentre(&mut theta[o..o + 3], &[0, 1, 2]);
+    }
+    let start_tree = tree::fixed(&start.parent);
+    let start_types: Vec<usize> = start.type_score.iter().map(|s| (0..3).max_by(|&a, &b| s[a].total_cmp(&s[b])).unwrap_or(0)).collect();
+    if !ev.windows.is_empty() {
+        laplace_kinodynamics(ev, &layout, &mut theta, &start.parent, &start_types, model, true);
     }
     let mut phase = 1;
     if let Some(w) = warm {
@@ -388,14 +529,15 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
         let data = theta.clone();
         w.warm_start(ev, &layout, &mut theta);
         for (i, blocks) in layout.blocks.iter().enumerate() {
+            let pre = structure::observed_displacements(ev, start.parent[i]);
             for b in blocks {
                 let fit_of = |th: &[f64]| {
                     let np = b.joint.num_params();
                     let q: Vec<f64> = match b.q {
-                        Some((qm, _)) => (0..k_frames).map(|t| if t == 0 { 0.0 } else { th[qm + t] }).collect(),
+                        Some((qm, _)) => th[qm..qm + k_frames].to_vec(),
                         None => vec![0.0; k_frames],
                     };
-                    block_pass(ev, i, b.joint, &th[b.mu..b.mu + np], &q, &vec![Displacement::identity(); k_frames], &[], model).0
+                    block_pass(ev, i, b.joint, &th[b.mu..b.mu + np], &q, &pre, &[], model).0
                 };
                 if fit_of(&data) > fit_of(&theta) {
                     let np = b.joint.num_params();
@@ -413,10 +555,10 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
     let cand: Vec<Vec<usize>> = (0..n).map(|i| (0..=n).filter(|&j| j != i + 1).collect()).collect();
 
     let mut discrete_iters = 0;
-    let mut block_sum = 0.0;
-    // Per-part, per-type conditional ELBOs summed over the current convergence block.
-    let mut f_block = vec![[0.0f64; 3]; n];
-    let mut last_block: Option<f64> = None;
+    // This convergence block's per-iteration ELBO estimates, and the previous block's mean and
+    // standard error.
+    let mut block: Vec<f64> = Vec::with_capacity(cfg.check_every);
+    let mut last_block: Option<(f64, f64)> = None;
     let mut last_logits: Option<Vec<f64>> = None;
     let mut final_left: Option<usize> = None;
     let mut f_avg = vec![[0.0f64; 3]; n];
@@ -450,7 +592,7 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
                         let (vm, vs) = (theta[vi], theta[vi + 1].exp());
                         let (v, gm, gs, gvm, gvs) = coordinate_prior(ev, &theta[qm..qm + k_frames], &s, vm, vs, model);
                         a += v;
-                        for t in 1..k_frames {
+                        for t in 0..k_frames {
                             grad[qm + t] += gm[t];
                             grad[qs + t] += gs[t] * s[t];
                         }
@@ -458,9 +600,17 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
                         a += 0.5 * (1.0 + 2.0 * theta[vi + 1] - vm * vm - vs * vs);
                         grad[vi] += gvm - vm;
                         grad[vi + 1] += gvs * vs + 1.0 - vs * vs;
+                    } else {
+                        // Dynamic mode: the first window's start (later ones follow by continuity,
+                        // the rest by the physics prior).
+                        let (m0, s0) = (theta[qm], theta[qs].exp());
+                        let var = model.window_start_sd_m.powi(2);
+                        a += -(m0 * m0 + s0 * s0) / (2.0 * var) - 0.5 * (var * 2.0 * std::f64::consts::PI).ln();
+                        grad[qm] -= m0 / var;
+                        grad[qs] -= s0 * s0 / var;
                     }
                     // Entropy of the coordinates' guide.
-                    for t in 1..k_frames {
+                    for t in 0..k_frames {
                         a += theta[qs + t] + 0.5 * (1.0 + (2.0 * std::f64::consts::PI).ln());
                         grad[qs + t] += 1.0;
                     }
@@ -478,7 +628,7 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
         // This iteration's estimates of the per-choice conditional ELBOs.
         let mut f_type = vec![[0.0f64; 3]; n];
         for _ in 0..cfg.particles {
-            let g_tree = if phase == 1 { tree::star(n) } else { tree::sample(&parent_logits, cfg.tau, cfg.delta, &mut rng) };
+            let g_tree = if phase == 1 { start_tree.clone() } else { tree::sample(&parent_logits, cfg.tau, cfg.delta, &mut rng) };
             // Joint types by Gumbel-softmax; the hard sample is the arg max.
             let chosen_type: Vec<usize> = (0..n)
                 .map(|i| {
@@ -526,13 +676,12 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
                         grad[b.log_s + j] += pw * gx[j] * s.eps[j] * theta[b.log_s + j].exp();
                     }
                     if let Some((qm, qs)) = b.q {
-                        for t in 1..k_frames {
+                        for t in 0..k_frames {
                             grad[qm + t] += pw * gq[t];
                             grad[qs + t] += pw * gq[t] * s.q_eps[t] * theta[qs + t].exp();
                         }
                     }
                     f_type[i][k] += pw * f;
-                    block_elbo += pw * f;
                 }
                 // Parents: log-likelihood of the subtree of i re-attached under each admissible node,
                 // all on this particle's samples. Only these nodes' conditional distribution is
@@ -575,13 +724,18 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
         }
         for i in 0..n {
             for k in 0..3 {
-                f_block[i][k] += f_type[i][k];
                 if final_left.is_some() {
                     f_avg[i][k] += f_type[i][k];
                 }
             }
         }
-        block_sum += block_elbo;
+        // The convergence test follows the ELBO itself, E_q(type)[conditional ELBO]: blocks of
+        // improbable types keep learning but do not hold the schedule up.
+        for i in 0..n {
+            let qt = softmax(&theta[layout.type_logits[i]..layout.type_logits[i] + 3]);
+            block_elbo += (0..3).map(|k| qt[k] * f_type[i][k]).sum::<f64>();
+        }
+        block.push(block_elbo);
 
         // Continuous parameters: Adam.
         let scale = if final_left.is_some() { cfg.final_lr_scale } else { 1.0 };
@@ -621,8 +775,27 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
                     discrete_iters += 1;
                 }
                 if iters % cfg.check_every == 0 {
-                    let mean = block_sum / cfg.check_every as f64;
-                    block_sum = 0.0;
+                    // Laplace updates of the kinodynamic factors under the current structure.
+                    if !ev.windows.is_empty() {
+                        let (parents, types) = if phase == 1 {
+                            (start.parent.clone(), start_types.clone())
+                        } else {
+                            let w: Vec<Vec<f64>> = (0..n).map(|i| theta[layout.parent_logits[i]..layout.parent_logits[i] + n + 1].to_vec()).collect();
+                            let t = (0..n)
+                                .map(|i| {
+                                    let l = &theta[layout.type_logits[i]..layout.type_logits[i] + 3];
+                                    (0..3).max_by(|&a, &b| l[a].total_cmp(&l[b])).unwrap_or(0)
+                                })
+                                .collect();
+                            (structure::max_arborescence(&w), t)
+                        };
+                        laplace_kinodynamics(ev, &layout, &mut theta, &parents, &types, model, false);
+                    }
+                    let k = block.len().max(1) as f64;
+                    let mean = block.iter().sum::<f64>() / k;
+                    let se = (block.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (k - 1.0).max(1.0) / k).sqrt();
+                    block.clear();
+                    tracing::trace!("iteration {iters} phase {phase}: mean ELBO {mean:.1} (se {se:.2})");
                     // The discrete guide's probabilities (types, and parents among the candidates).
                     let logits: Vec<f64> = (0..n)
                         .flat_map(|i| {
@@ -632,28 +805,29 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
                         })
                         .collect();
                     if phase == 1 {
-                        let settled = matches!(last_block, Some(prev) if (mean - prev).abs() < cfg.tol_nats + cfg.tol_rel * mean.abs());
+                        // Settled when the mean moved less than the tolerance or than the Monte
+                        // Carlo error of the two means can tell.
+                        let settled = matches!(last_block, Some((prev, prev_se))
+                            if (mean - prev).abs() < (cfg.tol_nats + cfg.tol_rel * mean.abs()).max(2.0 * (se * se + prev_se * prev_se).sqrt()));
                         if settled && iters >= cfg.min_iters {
+                            tracing::debug!("phase 2 from iteration {iters}");
                             phase = 2;
-                            start_type_logits(&mut theta, &layout, &f_block, &log_prior_type, cfg.check_every);
                         }
                     } else {
                         let settled = matches!(&last_logits, Some(prev) if prev.iter().zip(&logits).all(|(a, b)| (a - b).abs() < cfg.tol_prob));
                         if settled && discrete_iters >= cfg.min_discrete_iters {
+                            tracing::debug!("phase 3 from iteration {iters}");
                             final_left = Some(cfg.final_iters.max(1));
                         }
                     }
-                    last_block = Some(mean);
+                    last_block = Some((mean, se));
                     last_logits = Some(logits);
-                    f_block = vec![[0.0f64; 3]; n];
                 }
                 if iters >= cfg.max_iters {
                     final_left = Some(cfg.final_iters.max(1));
                 }
                 if phase == 1 && iters + cfg.min_discrete_iters >= cfg.max_iters {
                     phase = 2;
-                    let done = (iters % cfg.check_every).max(1);
-                    start_type_logits(&mut theta, &layout, &f_block, &log_prior_type, done);
                 }
             }
         }
@@ -699,18 +873,6 @@ fn recentre(logits: &mut [f64], idx: &[usize]) {
     }
 }
 
-/// Start the type logits at phase 1's model comparison, `log p(type) + ELBO_type` (every part
-/// under the fixed frame), from the conditional ELBOs summed over the last `count` iterations.
-fn start_type_logits(theta: &mut [f64], layout: &Layout, f_block: &[[f64; 3]], log_prior_type: &[f64], count: usize) {
-    for (i, f) in f_block.iter().enumerate() {
-        let o = layout.type_logits[i];
-        for k in 0..3 {
-            theta[o + k] = f[k] / count.max(1) as f64 + log_prior_type[k];
-        }
-        recentre(&mut theta[o..o + 3], &[0, 1, 2]);
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -742,6 +904,7 @@ mod tests {
                 com0: Vector3::new(0.5, 0.0, 0.8),
                 obs,
                 rot,
+                disp: vec![None; k],
                 radius: 0.2,
                 unit_inertia: Matrix3::identity() * 0.01,
                 volume: 0.001,

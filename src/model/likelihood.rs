@@ -41,13 +41,17 @@ pub struct RotationObs {
 pub struct PartSeries {
     /// Part label (>= 1).
     pub label: u32,
-    /// Perceived centre of mass in the reference configuration (the first grid frame in which
-    /// the part is seen) \[m\].
+    /// Perceived centre of mass in the part's reference configuration \[m\]: the configuration
+    /// of its first observation, to which perception registers every later one (a single noisy
+    /// frame of the evidence grid would make a poor reference).
     pub com0: Vector3<f64>,
     /// Per grid frame: the observed centre of mass, or None (not seen).
     pub obs: Vec<Option<PositionObs>>,
     /// Per grid frame: the observed rotation, where the part's shape makes one observable.
     pub rot: Vec<Option<RotationObs>>,
+    /// Per grid frame: the part's observed displacement from its reference configuration (the
+    /// registration's pose, whether or not its rotation is observable).
+    pub disp: Vec<Option<Isometry3<f64>>>,
     /// Root-mean-square radius of the part about its centre of mass \[m\].
     pub radius: f64,
     /// Rotational inertia about the centre of mass per kilogram (m²), fixed frame, reference
@@ -180,9 +184,9 @@ impl Evidence {
             let Some(geo) = geometry.get(&label) else { continue };
             let seen: Vec<(usize, &PartObservation)> =
                 obs.iter().filter_map(|o| index.get(&key(o.stamp)).map(|&i| (i, o))).collect();
-            let Some(&(_, first)) = seen.first() else { continue };
-            // The model's reference configuration is the part's pose at its first grid frame.
-            let r0 = first.pose.rotation.to_rotation_matrix().into_inner();
+            if seen.is_empty() {
+                continue;
+            }
             let mut series = vec![None; times.len()];
             let mut rot = vec![None; times.len()];
             for &(i, o) in &seen {
@@ -196,23 +200,23 @@ impl Evidence {
                         let a = r * a;
                         (a, (a.transpose() * cov * a)[0].max(0.0))
                     });
-                    rot[i] = Some(RotationObs { r: r * r0.transpose(), axes: axes.collect() });
+                    rot[i] = Some(RotationObs { r, axes: axes.collect() });
                 }
             }
-            let com0 = series.iter().flatten().next().map(|o: &PositionObs| o.y).expect("seen");
             let mut poses = vec![None; times.len()];
             for &(i, o) in &seen {
                 poses[i] = Some(o.pose);
             }
-            surfaces.push(poses);
+            surfaces.push(poses.clone());
             models.push(&geo.points);
             parts.push(PartSeries {
                 label,
-                com0,
+                com0: geo.com,
                 obs: series,
                 rot,
+                disp: surfaces.last().cloned().unwrap_or_default(),
                 radius: geo.radius.max(1e-3),
-                unit_inertia: r0 * geo.unit_inertia * r0.transpose(),
+                unit_inertia: geo.unit_inertia,
                 volume: geo.volume,
             });
         }
@@ -402,14 +406,13 @@ pub fn log_likelihood_rotation<T: Real>(o: &RotationObs, r: &Matrix3<T>, sigma_r
 /// Expected log prior `E_q[log p(q)]` of a joint-coordinate chain and its gradient with respect
 /// to the guide means `m` and sds `s`.
 ///
-/// Prior (kinematic mode): `q_0 = 0` (gauge: the reference configuration is the first grid
-/// frame), the first frame of every later window `~ N(0, window_start_sd_m^2)`, and within a
-/// window increments `q_k - q_{k-1} ~ N(0, (v * dt_k)^2)`. The velocity scale `v` is itself
+/// Prior (kinematic mode): the first frame of every window `~ N(0, window_start_sd_m^2)` (0 is
+/// the part's reference configuration, its first observation), and within a window increments `q_k - q_{k-1} ~ N(0, (v * dt_k)^2)`. The velocity scale `v` is itself
 /// latent, `v = velocity_sd_mps * exp(velocity_log_sd * xi_v)` with `xi_v ~ N(0, 1)` and, in the
 /// guide, `xi_v ~ N(vm, vs^2)`: a joint that barely moved is a joint with a small velocity scale,
 /// not a joint that beat the odds of a fast random walk in every frame — with a fixed scale the
 /// per-frame Occam factor declared such a part rigid with certainty. In dynamic mode the physics
-/// prior ([`super::dynamics`]) takes the place of all of this. `m[0]` and `s[0]` are ignored.
+/// prior ([`super::dynamics`]) takes the place of all of this.
 ///
 /// Returns the value and its gradients with respect to `m`, `s`, `vm` and `vs`.
 pub fn coordinate_prior(ev: &Evidence, m: &[f64], s: &[f64], vm: f64, vs: f64, cfg: &ModelConfig) -> (f64, Vec<f64>, Vec<f64>, f64, f64) {
@@ -421,9 +424,9 @@ pub fn coordinate_prior(ev: &Evidence, m: &[f64], s: &[f64], vm: f64, vs: f64, c
     let log_v = cfg.velocity_sd_mps.ln() + l * vm;
     let (mut g_vm, mut g_vs) = (0.0, 0.0);
     let ln2pi = (2.0 * std::f64::consts::PI).ln();
-    let mm = |k: usize| if k == 0 { 0.0 } else { m[k] };
-    let ss = |k: usize| if k == 0 { 0.0 } else { s[k] };
-    for k in 1..n {
+    let mm = |k: usize| m[k];
+    let ss = |k: usize| s[k];
+    for k in 0..n {
         if ev.window_start[k] {
             let var = cfg.window_start_sd_m.powi(2);
             v += -(mm(k).powi(2) + ss(k).powi(2)) / (2.0 * var) - 0.5 * (var.ln() + ln2pi);
@@ -444,7 +447,5 @@ pub fn coordinate_prior(ev: &Evidence, m: &[f64], s: &[f64], vm: f64, vs: f64, c
             g_vs -= sq * inv_var * 2.0 * l * l * vs;
         }
     }
-    gm[0] = 0.0;
-    gs[0] = 0.0;
     (v, gm, gs, g_vm, g_vs)
 }

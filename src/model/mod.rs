@@ -131,7 +131,7 @@ impl Default for ModelConfig {
             student_nu: 4.0,
             rotation_noise_median_rad: 0.02,
             rotation_noise_log_sd: 1.0,
-            axis_point_sd_m: 0.3,
+            axis_point_sd_m: 0.2,
             velocity_sd_mps: 0.5,
             velocity_log_sd: 1.5,
             window_start_sd_m: 1.0,
@@ -271,11 +271,13 @@ mod tests {
     fn tracking_inverts_the_displacement() {
         let cfg = ModelConfig::default();
         let com0 = Vector3::new(0.3, -0.2, 0.9);
-        let xi = [0.1, -0.2, 0.3, 0.0, 0.0, 0.4, 2.0, 1.0, 0.3, -0.5, 0.2];
+        let xi = [0.1, -0.2, 0.3, 0.0, 0.0, 0.4, 2.0, 1.0, 2.0, -1.5, 0.2];
         for joint in [JointType::Prismatic, JointType::Revolute] {
             let p = decode::<f64>(joint, &xi[..joint.num_params()], &com0, &cfg);
-            let x = displacement(&p, 0.17).apply(&p.com);
-            assert!((track_coordinate(&p, &x) - 0.17).abs() < 1e-9, "{joint:?}");
+            // A path of 0.17 m, or half a radian of a revolute (angles wrap at pi).
+            let q = if joint == JointType::Revolute { 0.5 * p.radius } else { 0.17 };
+            let x = displacement(&p, q).apply(&p.com);
+            assert!((track_coordinate(&p, &x) - q).abs() < 1e-9, "{joint:?}");
             // The centre of mass moves by about the path length for small q.
             let x = displacement(&p, 1e-4).apply(&p.com);
             assert!(((x - p.com).norm() - 1e-4).abs() < 1e-6, "{joint:?}");

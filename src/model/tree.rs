@@ -151,9 +151,10 @@ pub fn sample<R: Rng>(logits: &[Vec<f64>], tau: f64, delta: f64, rng: &mut R) ->
     TreeSample { parent, soft, admissible }
 }
 
-/// The tree in which every part hangs from the fixed frame (no soft weights: nothing to learn).
-pub fn star(n: usize) -> TreeSample {
-    TreeSample { parent: vec![0; n], soft: vec![vec![0.0; n + 1]; n], admissible: vec![vec![0]; n] }
+/// A given tree as a sample (no soft weights; each part's parent its only admissible node).
+pub fn fixed(parent: &[usize]) -> TreeSample {
+    let n = parent.len();
+    TreeSample { parent: parent.to_vec(), soft: vec![vec![0.0; n + 1]; n], admissible: parent.iter().map(|&p| vec![p]).collect() }
 }
 
 /// Marginal parent probabilities of the guide, by Monte Carlo over the sampler (Gumbel-max, i.e.

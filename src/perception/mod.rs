@@ -81,6 +81,8 @@ pub struct PerceptionConfig {
     /// \[nats\].
     pub move_penalty_nats: f64,
     pub reference_penalty_nats: f64,
+    /// Cost of moving a pose when a frame is registered again against the final model.
+    pub refine_penalty_nats: f64,
 }
 
 impl Default for PerceptionConfig {
@@ -89,7 +91,7 @@ impl Default for PerceptionConfig {
             min_points: 8,
             max_points: 400,
             min_thickness_m: 0.005,
-            com_sd_floor_m: 0.001,
+            com_sd_floor_m: 0.003,
             rotation_sd_floor_rad: 0.02,
             orientation_min_ratio: 1.3,
             registration_cov_scale: 4.0,
@@ -109,6 +111,7 @@ impl Default for PerceptionConfig {
             contact_range_m: 0.015,
             move_penalty_nats: 8.0,
             reference_penalty_nats: 0.0,
+            refine_penalty_nats: 2.0,
         }
     }
 }
@@ -158,6 +161,8 @@ pub struct PartGeometry {
 struct PartState {
     tracker: Tracker,
     anchor: Vector3<f64>,
+    /// The registered frames' points and weights, by stamp, for [`Perception::refine`].
+    frames: Vec<(f64, Vec<Vector3<f64>>, Vec<f64>)>,
 }
 
 /// Stateful perception: one tracker per part label.
@@ -223,7 +228,7 @@ impl Perception {
                     let clean = if clean.len() >= cfg.min_points { clean } else { keep.iter().map(|&i| pts[i]).collect() };
                     let anchor = clean.iter().sum::<Vector3<f64>>() / clean.len().max(1) as f64;
                     let tracker = Tracker::new(&clean, cfg);
-                    self.parts.insert(label, PartState { tracker, anchor });
+                    self.parts.insert(label, PartState { tracker, anchor, frames: Vec::new() });
                     let obs = observation(cloud.stamp, Isometry3::identity(), None, anchor, cfg, clean.len(), pts.len() - clean.len() + dropped, 1.0);
                     out.push((label, obs));
                     continue;
@@ -231,12 +236,13 @@ impl Perception {
             };
             let Some(reg) = state.tracker.update(&FramePoints { points: &pts, weights: &weights }, cfg) else { continue };
             let obs = observation(cloud.stamp, reg.pose, Some(&reg.information), state.anchor, cfg, pts.len(), dropped, reg.matched);
+            state.frames.push((cloud.stamp, pts, weights));
             out.push((label, obs));
         }
         out
     }
 
-    /// Observe a whole recording.
+    /// Observe a whole recording, then [`refine`](Self::refine) the poses.
     pub fn observe_all(&mut self, clouds: &[CloudFrame]) -> PartTracks {
         let mut tracks = PartTracks::new();
         for c in clouds {
@@ -244,7 +250,29 @@ impl Perception {
                 tracks.entry(label).or_default().push(obs);
             }
         }
+        self.refine(&mut tracks);
         tracks
+    }
+
+    /// Register every frame of `tracks` again against the part models as they are now. A frame
+    /// registered early met a model that still lacked the surfaces seen later (a door's far edge,
+    /// a cabinet's inside); the complete model removes the bias that left, which a
+    /// track's later frames do not have. A pose moves only where that explains the points better
+    /// by more than `refine_penalty_nats`.
+    pub fn refine(&self, tracks: &mut PartTracks) {
+        for (label, obs) in tracks.iter_mut() {
+            let Some(state) = self.parts.get(label) else { continue };
+            let mut frames = state.frames.iter().peekable();
+            for o in obs.iter_mut() {
+                while frames.peek().is_some_and(|f| f.0 < o.stamp) {
+                    frames.next();
+                }
+                let Some((_, pts, w)) = frames.peek().filter(|f| f.0 == o.stamp) else { continue };
+                if let Some(reg) = state.tracker.refine(&FramePoints { points: pts, weights: w }, &o.pose, &self.config) {
+                    *o = observation(o.stamp, reg.pose, Some(&reg.information), state.anchor, &self.config, o.points, o.outliers, reg.matched);
+                }
+            }
+        }
     }
 
     /// Geometry of every part seen so far, from its current model.
@@ -272,7 +300,14 @@ fn observation(
     matched: f64,
 ) -> PartObservation {
     let (fr, fp) = (cfg.rotation_sd_floor_rad.powi(2), cfg.com_sd_floor_m.powi(2));
-    let mut pose_cov = Matrix6::from_diagonal(&nalgebra::Vector6::new(fr, fr, fr, fp, fp, fp));
+    // The floors describe a rotation about the part's anchor and a shift of it: in the pose's
+    // (rotation about the origin, translation) coordinates that rotation also moves the origin by
+    // `anchor x w`. Floored about the origin instead, the rotation floor would turn into a
+    // position sd of `floor * |anchor|` (1 cm for a part 0.5 m from the fixed frame's origin),
+    // hiding small motions of parts far from the origin.
+    let mut lever = Matrix6::<f64>::identity();
+    lever.fixed_view_mut::<3, 3>(3, 0).copy_from(&registration::skew(&anchor));
+    let mut pose_cov = lever * Matrix6::from_diagonal(&nalgebra::Vector6::new(fr, fr, fr, fp, fp, fp)) * lever.transpose();
     if let Some(a) = information {
         // Regularised inverse: an unconstrained direction gets a large but finite variance.
         let reg = a + Matrix6::identity() * (1e-9 * a.trace().max(1e-12) + 1.0);
@@ -358,5 +393,23 @@ mod tests {
         let bx = part_geometry(&lattice(0.04, 0.02, 0.01), &cfg);
         assert_eq!(bx.rotation_axes.len(), 3);
         assert!(bx.volume > 0.0 && (bx.com - Vector3::new(0.08, 0.04, 0.02)).norm() < 1e-6);
+    }
+
+    /// The floors are about the part's anchor: a part far from the fixed frame's origin is not
+    /// less certain in position than one at the origin.
+    #[test]
+    fn covariance_floors_do_not_depend_on_the_origin() {
+        let cfg = PerceptionConfig::default();
+        for anchor in [Vector3::zeros(), Vector3::new(0.5, -2.0, 1.0)] {
+            let o = observation(0.0, Isometry3::identity(), None, anchor, &cfg, 100, 0, 1.0);
+            let sd = o.position_cov(&anchor).symmetric_eigen().eigenvalues.map(f64::sqrt);
+            assert!(sd.iter().all(|s| (s - cfg.com_sd_floor_m).abs() < 1e-12), "anchor {anchor:?}: sd {sd:?}");
+            // A point 0.1 m from the anchor: the rotation floor moves it by up to 0.1 * floor.
+            let far = o.position_cov(&(anchor + Vector3::new(0.1, 0.0, 0.0))).symmetric_eigen().eigenvalues.map(f64::sqrt).max();
+            let want = (cfg.com_sd_floor_m.powi(2) + (0.1 * cfg.rotation_sd_floor_rad).powi(2)).sqrt();
+            assert!((far - want).abs() < 1e-9, "anchor {anchor:?}: {far} vs {want}");
+            let r = o.rotation_cov().symmetric_eigen().eigenvalues.map(f64::sqrt);
+            assert!(r.iter().all(|s| (s - cfg.rotation_sd_floor_rad).abs() < 1e-12));
+        }
     }
 }

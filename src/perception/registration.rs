@@ -19,8 +19,10 @@
 //!    iterations matching within `match_gate_m`, the second half within `fine_gate_m`.
 //! 3. **Hypotheses**: the previous pose, the reference pose, and ICP from the previous pose, from
 //!    a constant-velocity prediction and from the previous pose shifted by the motion of the
-//!    points' centroid. Moving away from the previous pose costs
-//!    `move_penalty_nats`: a part whose points are explained as well where it was does not move.
+//!    points' centroid. Moving away from the previous pose costs `move_penalty_nats`: a part whose
+//!    points are explained as well where it was does not move. Returning to the reference pose
+//!    costs `reference_penalty_nats` (nothing by default), so that a static part whose
+//!    registration slipped along a direction its surface does not constrain comes back.
 //!    This stops a static part sliding along directions its visible surface does not constrain (a
 //!    cabinet front is a plane; only its edges fix its position in that plane).
 //! 4. **Growth**: points of the frame (away from other parts) that lie farther than one voxel from
@@ -363,11 +365,11 @@ impl Tracker {
     pub fn update(&mut self, frame: &FramePoints<'_>, cfg: &PerceptionConfig) -> Option<Registered> {
         let frame_index = self.frames;
         self.frames += 1;
-        let mut hyps: Vec<(Isometry3<f64>, f64)> = vec![(self.pose, 0.0), (Isometry3::identity(), cfg.reference_penalty_nats)];
         // Constant-velocity prediction: the last motion applied once more; and the previous pose
         // shifted by the motion of the points' centroid (biased by changes of the visible surface,
         // but immune to the local minima of a regular structure).
         let predicted = self.pose * (self.previous.inverse() * self.pose);
+        let mut hyps: Vec<(Isometry3<f64>, f64)> = vec![(self.pose, 0.0), (Isometry3::identity(), cfg.reference_penalty_nats)];
         let centroid = frame.points.iter().sum::<Vector3<f64>>() / frame.points.len().max(1) as f64;
         let shifted = Translation3::from(centroid - self.centroid.unwrap_or(centroid)) * self.pose;
         self.centroid = Some(centroid);
@@ -412,6 +414,26 @@ impl Tracker {
         let confirm = if frame_index < cfg.initial_frames && pose == Isometry3::identity() { 1 } else { cfg.confirm_frames };
         self.model.grow(&grow, frame_index, confirm, cfg.max_model_points);
         Some(Registered { pose, information, matched })
+    }
+}
+
+impl Tracker {
+    /// Register a frame again against the model as it is now, starting from `pose` (its first
+    /// registration, against the model of that time): the pose moves only if that explains the
+    /// points better by more than `refine_penalty_nats`. Returns the pose and its information.
+    pub fn refine(&self, frame: &FramePoints<'_>, pose: &Isometry3<f64>, cfg: &PerceptionConfig) -> Option<Registered> {
+        let scales = residual_scale(&self.model, frame, pose, cfg).map(|s| Scales::new(s, cfg)).unwrap_or(self.scales);
+        let fine = PerceptionConfig { match_gate_m: cfg.fine_gate_m, ..cfg.clone() };
+        let (c0, m0) = cost(&self.model, frame, pose, scales, cfg);
+        let mut best = (c0, m0, *pose);
+        if let Some((p, _)) = icp(&self.model, frame, pose, scales, &fine) {
+            let (c, m) = cost(&self.model, frame, &p, scales, cfg);
+            if c + cfg.refine_penalty_nats < best.0 {
+                best = (c, m, p);
+            }
+        }
+        let information = icp_information(&self.model, frame, &best.2, scales, cfg)?;
+        Some(Registered { pose: best.2, information, matched: best.1 })
     }
 }
 

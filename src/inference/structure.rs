@@ -1,0 +1,287 @@
+//! The initial structure of BOM-SVI: which part hangs from which, and by which joint type, before
+//! the variational fit refines it.
+//!
+//! Following Sturm, Stachniss & Burgard (JAIR 2011, "A probabilistic framework for learning
+//! kinematic models of articulated objects", §4), every part's motion is fitted *relative to every
+//! candidate parent* — the fixed frame or another part, whose motion is then removed — with each
+//! joint type, scored by the model's own likelihood at the fit less a BIC penalty
+//! `0.5 ln(n) (#parameters + #coordinates)`, and the tree is the maximum spanning arborescence
+//! (Chu-Liu/Edmonds) of the best scores plus the contact prior's log weights. A candidate parent's
+//! motion is its best fit relative to the fixed frame, not its raw registration: two parts that
+//! move together (a microwave standing on a slider) then score alike whichever carries the other,
+//! instead of the noisier one always being the child, and the contact prior decides.
+//!
+//! Why: the guide's continuous parameters describe a joint *relative to its parent*. Fitted under
+//! a wrong parent — a latch under the fixed frame while it rides on a door — they follow the
+//! parent's motion, and the tree's natural-gradient updates, which score each parent with the
+//! current fits, then keep the wrong parent (a local optimum of the mean-field ELBO). Starting
+//! from the structure that explains each part's relative motion best avoids that.
+
+use crate::model::likelihood::Evidence;
+use crate::model::{decode, displacement, Displacement, JointType, ModelConfig};
+
+use super::guide::init_block;
+use super::svi::block_pass;
+
+/// The initial structure.
+#[derive(Debug, Clone)]
+pub struct InitialStructure {
+    /// Parent node of each part (0 = fixed frame, `k + 1` = part `k`).
+    pub parent: Vec<usize>,
+    /// Score of part `i` under node `j` (its best joint type's), `-inf` for itself.
+    pub parent_score: Vec<Vec<f64>>,
+    /// Score of each joint type of each part under its parent.
+    pub type_score: Vec<[f64; 3]>,
+}
+
+/// The observed displacement of node `j` at every grid frame (identity for the fixed frame; held
+/// over frames in which the part is not seen).
+pub fn observed_displacements(ev: &Evidence, j: usize) -> Vec<Displacement<f64>> {
+    if j == 0 {
+        return vec![Displacement::identity(); ev.len()];
+    }
+    let mut last = Displacement::identity();
+    ev.parts[j - 1]
+        .disp
+        .iter()
+        .map(|d| {
+            if let Some(iso) = d {
+                last = Displacement { r: iso.rotation.to_rotation_matrix().into_inner(), t: iso.translation.vector };
+            }
+            last
+        })
+        .collect()
+}
+
+/// The displacement of part `j` at every grid frame under its best-scoring joint type relative to
+/// the fixed frame (its registration, smoothed by the joint's one degree of freedom).
+fn fitted_displacements(ev: &Evidence, j: usize, model: &ModelConfig) -> Vec<Displacement<f64>> {
+    let world = vec![Displacement::identity(); ev.len()];
+    let best = JointType::ALL
+        .into_iter()
+        .max_by(|a, b| score(ev, j, *a, &world, model).total_cmp(&score(ev, j, *b, &world, model)))
+        .unwrap_or(JointType::Rigid);
+    let (xi, q) = init_block(ev, j, best, &world, model);
+    let p = decode::<f64>(best, &xi, &ev.parts[j].com0, model);
+    q.iter().map(|&qt| displacement(&p, qt)).collect()
+}
+
+/// Score of part `i` with joint type `joint` relative to the motion `pre` of a parent.
+fn score(ev: &Evidence, i: usize, joint: JointType, pre: &[Displacement<f64>], model: &ModelConfig) -> f64 {
+    let (xi, q) = init_block(ev, i, joint, pre, model);
+    let ll = block_pass(ev, i, joint, &xi, &q, pre, &[], model).0;
+    let part = &ev.parts[i];
+    let n_obs: usize = (0..ev.len())
+        .map(|t| part.obs[t].map_or(0, |_| 3) + part.rot[t].as_ref().map_or(0, |r| r.axes.len()))
+        .sum();
+    let seen = part.obs.iter().filter(|o| o.is_some()).count();
+    let k = joint.num_params() + if joint.movable() { seen.saturating_sub(1) } else { 0 };
+    ll - 0.5 * (n_obs.max(2) as f64).ln() * k as f64
+}
+
+/// Whether part `j` clearly moves: its median displacement from the reference exceeds 1 cm at
+/// its centre of mass or 3 degrees (a median, because a static part's registration slips now and
+/// then). A part that does not is taken as static when
+/// other parts are fitted relative to it: a static part's registration jitters by millimetres,
+/// and subtracting that jitter from a child's motion would only add noise to it.
+fn moves(ev: &Evidence, j: usize) -> bool {
+    let part = &ev.parts[j];
+    let mut shift: Vec<f64> = Vec::new();
+    let mut turn: Vec<f64> = Vec::new();
+    for d in part.disp.iter().flatten() {
+        shift.push((d * nalgebra::Point3::from(part.com0) - nalgebra::Point3::from(part.com0)).norm());
+        turn.push(d.rotation.angle());
+    }
+    let median = |v: &mut Vec<f64>| {
+        v.sort_by(|a, b| a.total_cmp(b));
+        v.get(v.len() / 2).copied().unwrap_or(0.0)
+    };
+    let (a, b) = (median(&mut shift), median(&mut turn));
+    tracing::debug!("part {} moves: median shift {a:.4} m, turn {:.2} deg, {} frames", part.label, b.to_degrees(), shift.len());
+    a > 0.01 || b > 3f64.to_radians()
+}
+
+/// The initial structure of the parts of `ev`, with the contact prior's log weights `log_w`
+/// (`n` rows of `n + 1`).
+pub fn initial_structure(ev: &Evidence, model: &ModelConfig, log_w: &[Vec<f64>]) -> InitialStructure {
+    let n = ev.parts.len();
+    let world = vec![Displacement::identity(); ev.len()];
+    let pres: Vec<Vec<Displacement<f64>>> = (0..=n)
+        .map(|j| if j > 0 && moves(ev, j - 1) { fitted_displacements(ev, j - 1, model) } else { world.clone() })
+        .collect();
+    let mut parent_score = vec![vec![f64::NEG_INFINITY; n + 1]; n];
+    let mut all_types = vec![vec![[f64::NEG_INFINITY; 3]; n + 1]; n];
+    for i in 0..n {
+        for j in (0..=n).filter(|&j| j != i + 1) {
+            let s = JointType::ALL.map(|k| score(ev, i, k, &pres[j], model));
+            all_types[i][j] = s;
+            parent_score[i][j] = s.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+        }
+    }
+    // Two parts that move rigidly together are one body to the kinematics: which of them carries
+    // the other is not observable, so both attachments get the same score (the mean), and the rest
+    // of the tree and the contact prior decide.
+    let rigid = JointType::Rigid.index();
+    for i in 0..n {
+        for k in i + 1..n {
+            let (a, b) = (&all_types[i][k + 1], &all_types[k][i + 1]);
+            let best = |s: &[f64; 3]| s[rigid] >= s.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+            if best(a) && best(b) {
+                let m = 0.5 * (a[rigid] + b[rigid]);
+                parent_score[i][k + 1] = m;
+                parent_score[k][i + 1] = m;
+            }
+        }
+    }
+    for i in 0..n {
+        tracing::debug!("initial structure: part {} type scores by parent {:.1?}", ev.parts[i].label, all_types[i]);
+    }
+    let weights: Vec<Vec<f64>> = (0..n).map(|i| (0..=n).map(|j| parent_score[i][j] + log_w[i][j]).collect()).collect();
+    let parent = max_arborescence(&weights);
+    let type_score = (0..n).map(|i| all_types[i][parent[i]]).collect();
+    InitialStructure { parent, parent_score, type_score }
+}
+
+/// Maximum spanning arborescence rooted at node 0 (Chu-Liu/Edmonds): `w[i][j]` is the weight of
+/// node `j` as the parent of part `i` (node `i + 1`); returns the parent node of every part.
+pub fn max_arborescence(w: &[Vec<f64>]) -> Vec<usize> {
+    let n = w.len();
+    // Edges (from, to, weight) over nodes 0..=n, to != 0.
+    let edges: Vec<(usize, usize, f64)> = (0..n)
+        .flat_map(|i| (0..=n).filter(move |&j| j != i + 1).map(move |j| (j, i + 1, w[i][j])))
+        .filter(|e| e.2.is_finite())
+        .collect();
+    let chosen = edmonds(n + 1, 0, &edges);
+    let mut parent = vec![0; n];
+    for (k, e) in chosen.iter().enumerate() {
+        if let Some(e) = e {
+            if k > 0 {
+                parent[k - 1] = edges[*e].0;
+            }
+        }
+    }
+    parent
+}
+
+/// Chu-Liu/Edmonds on `nodes` nodes: for every node the index of its chosen incoming edge in
+/// `edges` (None for the root and for unreachable nodes).
+fn edmonds(nodes: usize, root: usize, edges: &[(usize, usize, f64)]) -> Vec<Option<usize>> {
+    // Best incoming edge of every node.
+    let mut best: Vec<Option<usize>> = vec![None; nodes];
+    for (k, &(u, v, wt)) in edges.iter().enumerate() {
+        if v != root && u != v && best[v].is_none_or(|b| wt > edges[b].2) {
+            best[v] = Some(k);
+        }
+    }
+    // Find a cycle among the best edges.
+    let mut cycle: Option<Vec<usize>> = None;
+    for start in 0..nodes {
+        let mut seen = vec![false; nodes];
+        let mut v = start;
+        while v != root && !seen[v] {
+            seen[v] = true;
+            match best[v] {
+                Some(e) => v = edges[e].0,
+                None => break,
+            }
+        }
+        if v != root && seen[v] && best[v].is_some() {
+            let mut c = vec![v];
+            let mut u = edges[best[v].expect("on the cycle")].0;
+            while u != v {
+                c.push(u);
+                u = edges[best[u].expect("on the cycle")].0;
+            }
+            cycle = Some(c);
+            break;
+        }
+    }
+    let Some(cycle) = cycle else { return best };
+    // Contract the cycle into one node and recurse.
+    let in_cycle = |v: usize| cycle.contains(&v);
+    let map: Vec<usize> = {
+        let mut m = vec![0; nodes];
+        let mut next = 0;
+        for v in 0..nodes {
+            if !in_cycle(v) {
+                m[v] = next;
+                next += 1;
+            }
+        }
+        for &v in &cycle {
+            m[v] = next;
+        }
+        m
+    };
+    let c_node = map[cycle[0]];
+    let mut contracted = Vec::new();
+    let mut origin = Vec::new();
+    for (k, &(u, v, wt)) in edges.iter().enumerate() {
+        let (cu, cv) = (map[u], map[v]);
+        if cu == cv {
+            continue;
+        }
+        // An edge into the cycle replaces the cycle edge into its head.
+        let wt = if in_cycle(v) { wt - edges[best[v].expect("on the cycle")].2 } else { wt };
+        contracted.push((cu, cv, wt));
+        origin.push(k);
+    }
+    let sub = edmonds(c_node + 1, map[root], &contracted);
+    let mut result = best.clone();
+    for (cv, e) in sub.iter().enumerate() {
+        let Some(e) = e else { continue };
+        let k = origin[*e];
+        let (_, v, _) = edges[k];
+        if cv == c_node {
+            // The edge entering the cycle: its head drops its cycle edge.
+            result[v] = Some(k);
+        } else {
+            result[v] = Some(k);
+        }
+    }
+    result
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::tree::is_tree;
+    use rand::{Rng, SeedableRng};
+
+    /// Edmonds finds the best tree that brute force over all parent assignments finds.
+    #[test]
+    fn arborescence_matches_brute_force() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
+        for n in 1..=5 {
+            for _ in 0..40 {
+                let w: Vec<Vec<f64>> = (0..n)
+                    .map(|i| (0..=n).map(|j| if j == i + 1 { f64::NEG_INFINITY } else { rng.random_range(-5.0..5.0) }).collect())
+                    .collect();
+                let total = |p: &[usize]| p.iter().enumerate().map(|(i, &j)| w[i][j]).sum::<f64>();
+                let got = max_arborescence(&w);
+                assert!(is_tree(&got), "{got:?}");
+                let mut best = f64::NEG_INFINITY;
+                let mut p = vec![0usize; n];
+                loop {
+                    if is_tree(&p) && p.iter().enumerate().all(|(i, &j)| j != i + 1) {
+                        best = best.max(total(&p));
+                    }
+                    // Next assignment in base n + 1.
+                    let mut k = 0;
+                    while k < n {
+                        p[k] += 1;
+                        if p[k] <= n {
+                            break;
+                        }
+                        p[k] = 0;
+                        k += 1;
+                    }
+                    if k == n {
+                        break;
+                    }
+                }
+                assert!((total(&got) - best).abs() < 1e-9, "n {n}: {} vs {best}", total(&got));
+            }
+        }
+    }
+}
