@@ -1,5 +1,6 @@
 //! Benchmarks (`cargo bench`): the physics forward simulation and its gradient, the kinematic
-//! posterior of a real track, and whole replays. Speed is measured here and by
+//! posterior of a real track, the dynamic posterior of a 3-part cabinet after one window, and
+//! whole replays. Speed is measured here and by
 //! `bom replay --timing`, never in tests.
 
 use std::hint::black_box;
@@ -88,7 +89,19 @@ fn inference(c: &mut Criterion) {
     let mut g = c.benchmark_group("inference");
     g.sample_size(20);
     g.bench_function("kinematic BOM-SVI posterior, real door track (left_door_001)", |b| {
-        b.iter(|| svi::fit(black_box(&ev), &cfg.model, &cfg.inference))
+        b.iter(|| svi::fit(black_box(&ev), &cfg.model, &cfg.inference, None))
+    });
+    // Dynamic mode: the posterior of a 3-part cabinet (two doors) after its first interaction
+    // window, from its recorded wrenches (the "3-part object after one window").
+    let cab: PathBuf = "bags/mujoco/hingecabinet.mcap".into();
+    let run3 = bom::pipeline::replay(std::slice::from_ref(&cab), &cfg).expect("bundled bag");
+    let springs = run3.ground_truth.as_ref().map(bom::pipeline::declared_springs).unwrap_or_default();
+    let mut diag = bom::diagnostics::Diagnostics::default();
+    let rec = bom::input::decode_recording(&[bom::input::read_bag(&cab, &mut diag).expect("bundled bag")], &cfg.topics, &cfg.fixed_frame, &mut diag);
+    let ev3 = Evidence::new(&run3.tracks, &run3.geometry, &run3.windows[..1], &rec.wrenches, &springs, &bom::pipeline::grid(&cfg));
+    g.sample_size(10);
+    g.bench_function("dynamic BOM-SVI posterior, 3-part hinge cabinet, first window", |b| {
+        b.iter(|| svi::fit(black_box(&ev3), &cfg.model, &cfg.inference, None))
     });
     g.bench_function("bom replay, real door track (left_door_001)", |b| {
         b.iter(|| bom::pipeline::replay(std::slice::from_ref(&bag), &cfg).unwrap())
