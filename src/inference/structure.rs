@@ -57,10 +57,12 @@ pub fn observed_displacements(ev: &Evidence, j: usize) -> Vec<Displacement<f64>>
 /// the fixed frame (its registration, smoothed by the joint's one degree of freedom).
 fn fitted_displacements(ev: &Evidence, j: usize, model: &ModelConfig) -> Vec<Displacement<f64>> {
     let world = vec![Displacement::identity(); ev.len()];
+    let scores = JointType::ALL.map(|k| score(ev, j, k, &world, model));
     let best = JointType::ALL
         .into_iter()
-        .max_by(|a, b| score(ev, j, *a, &world, model).total_cmp(&score(ev, j, *b, &world, model)))
-        .unwrap_or(JointType::Rigid);
+        .zip(scores)
+        .max_by(|a, b| a.1.total_cmp(&b.1))
+        .map_or(JointType::Rigid, |(k, _)| k);
     let (xi, q) = init_block(ev, j, best, &world, model);
     let p = decode::<f64>(best, &xi, &ev.parts[j].com0, model);
     q.iter().map(|&qt| displacement(&p, qt)).collect()
@@ -227,17 +229,12 @@ fn edmonds(nodes: usize, root: usize, edges: &[(usize, usize, f64)]) -> Vec<Opti
         origin.push(k);
     }
     let sub = edmonds(c_node + 1, map[root], &contracted);
-    let mut result = best.clone();
-    for (cv, e) in sub.iter().enumerate() {
-        let Some(e) = e else { continue };
+    let mut result = best;
+    // Every chosen edge of the contracted graph replaces its head's best edge; for the edge
+    // entering the cycle, that drops the cycle edge into its head.
+    for e in sub.iter().flatten() {
         let k = origin[*e];
-        let (_, v, _) = edges[k];
-        if cv == c_node {
-            // The edge entering the cycle: its head drops its cycle edge.
-            result[v] = Some(k);
-        } else {
-            result[v] = Some(k);
-        }
+        result[edges[k].1] = Some(k);
     }
     result
 }

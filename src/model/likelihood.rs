@@ -16,7 +16,7 @@ use nalgebra::{Isometry3, Matrix3, Vector3};
 
 use super::{c, ModelConfig, Real};
 use crate::input::WrenchSample;
-use crate::perception::{PartGeometry, PartObservation, PartTracks};
+use crate::perception::{geometry, PartGeometry, PartObservation, PartTracks};
 use crate::windows::Window;
 
 /// A position observation: the centre of mass \[m\] (fixed frame) and its perception covariance
@@ -177,8 +177,7 @@ impl Evidence {
             .map(|i| i == 0 || window_of(times[i]) != window_of(times[i - 1]))
             .collect();
         let mut parts = Vec::new();
-        // Surface points of each part at each grid frame it is seen in, for the contact distances.
-        let mut surfaces: Vec<Vec<Option<Isometry3<f64>>>> = Vec::new();
+        // Each part's model points, for the contact areas.
         let mut models: Vec<&[Vector3<f64>]> = Vec::new();
         for (&label, obs) in tracks {
             let Some(geo) = geometry.get(&label) else { continue };
@@ -207,20 +206,20 @@ impl Evidence {
             for &(i, o) in &seen {
                 poses[i] = Some(o.pose);
             }
-            surfaces.push(poses.clone());
             models.push(&geo.points);
             parts.push(PartSeries {
                 label,
                 com0: geo.com,
                 obs: series,
                 rot,
-                disp: surfaces.last().cloned().unwrap_or_default(),
+                disp: poses,
                 radius: geo.radius.max(1e-3),
                 unit_inertia: geo.unit_inertia,
                 volume: geo.volume,
             });
         }
-        let contact = contact_areas(&surfaces, &models, grid.contact_range_m, grid.voxel_m);
+        let disps: Vec<&[Option<Isometry3<f64>>]> = parts.iter().map(|p: &PartSeries| p.disp.as_slice()).collect();
+        let contact = geometry::contact_areas(&disps, &models, grid.contact_range_m, grid.voxel_m);
         let labels: Vec<u32> = parts.iter().map(|p| p.label).collect();
         let dynamic = if wrenches.is_empty() {
             Vec::new()
@@ -282,71 +281,6 @@ fn window_evidence(times: &[f64], frames: Vec<usize>, pushed: Option<usize>, wre
     Some(WindowEvidence { frames, frame_substep, pushed, h, force, torque, point })
 }
 
-/// Contact areas between the parts' surfaces (model points moved by their poses) at the first grid
-/// frame in which both parts of a pair are seen: the number of model points of one part within
-/// `range` of the other's, times the surface each point stands for, averaged over both directions.
-fn contact_areas(poses: &[Vec<Option<Isometry3<f64>>>], models: &[&[Vector3<f64>]], range: f64, voxel: f64) -> Vec<Vec<f64>> {
-    use kiddo::{KdTree, SquaredEuclidean};
-    let n = poses.len();
-    let tree_of = |pose: &Isometry3<f64>, pts: &[Vector3<f64>]| {
-        let mut tree: KdTree<f64, 3> = KdTree::new();
-        let mut seen = std::collections::HashSet::new();
-        for (j, p) in pts.iter().enumerate() {
-            let x = pose * nalgebra::Point3::from(*p);
-            if seen.insert((x.x.to_bits(), x.y.to_bits(), x.z.to_bits())) {
-                tree.add(&[x.x, x.y, x.z], j as u64);
-            }
-        }
-        tree
-    };
-    let near = |tree: &KdTree<f64, 3>, pose: &Isometry3<f64>, pts: &[Vector3<f64>]| {
-        pts.iter()
-            .filter(|p| {
-                let x = pose * nalgebra::Point3::from(**p);
-                tree.nearest_one::<SquaredEuclidean>(&[x.x, x.y, x.z]).distance <= range * range
-            })
-            .count()
-    };
-    let mut a = vec![vec![0.0; n]; n];
-    for i in 0..n {
-        for k in i + 1..n {
-            let both = (0..poses[i].len()).find_map(|t| Some((poses[i][t]?, poses[k][t]?)));
-            let area = match both {
-                Some((pi, pk)) if !models[i].is_empty() && !models[k].is_empty() => {
-                    let (ti, tk) = (tree_of(&pi, models[i]), tree_of(&pk, models[k]));
-                    0.5 * (near(&tk, &pi, models[i]) + near(&ti, &pk, models[k])) as f64 * voxel * voxel
-                }
-                _ => 0.0,
-            };
-            a[i][k] = area;
-            a[k][i] = area;
-        }
-    }
-    a
-}
-
-/// `ln Gamma(x)` for `x > 0` (Lanczos, g = 7, 9 terms; relative error below 1e-13).
-fn ln_gamma(x: f64) -> f64 {
-    const G: [f64; 9] = [
-        0.999_999_999_999_809_9,
-        676.520_368_121_885_1,
-        -1_259.139_216_722_402_8,
-        771.323_428_777_653_1,
-        -176.615_029_162_140_6,
-        12.507_343_278_686_905,
-        -0.138_571_095_265_720_12,
-        9.984_369_578_019_572e-6,
-        1.505_632_735_149_311_6e-7,
-    ];
-    if x < 0.5 {
-        return (std::f64::consts::PI / (std::f64::consts::PI * x).sin()).ln() - ln_gamma(1.0 - x);
-    }
-    let x = x - 1.0;
-    let t = x + 7.5;
-    let a = G.iter().enumerate().skip(1).fold(G[0], |acc, (i, g)| acc + g / (x + i as f64));
-    0.5 * (2.0 * std::f64::consts::PI).ln() + (x + 0.5) * t.ln() - t + a.ln()
-}
-
 /// Log-density of a `dim`-variate Student-t with `nu` degrees of freedom (Gaussian when `nu` is
 /// infinite or 0) at squared Mahalanobis distance `m2`, with `half_log_det = 0.5 log |Sigma|`.
 #[inline]
@@ -355,7 +289,7 @@ fn log_student<T: Real>(m2: T, half_log_det: T, dim: usize, nu: f64) -> T {
     if !(nu.is_finite() && nu > 0.0) {
         return -(m2 * 0.5) - half_log_det - c::<T>(0.5 * d * (2.0 * std::f64::consts::PI).ln());
     }
-    let norm = ln_gamma(0.5 * (nu + d)) - ln_gamma(0.5 * nu) - 0.5 * d * (nu * std::f64::consts::PI).ln();
+    let norm = libm::lgamma(0.5 * (nu + d)) - libm::lgamma(0.5 * nu) - 0.5 * d * (nu * std::f64::consts::PI).ln();
     -((m2 / nu + 1.0).ln() * (0.5 * (nu + d))) - half_log_det + norm
 }
 

@@ -1,7 +1,7 @@
 //! Geometry of point sets: robust stray-point removal, principal axes, convex-hull mass
-//! properties (parry3d) and surface normals.
+//! properties (parry3d), surface normals and the contact areas between parts.
 
-use nalgebra::{Matrix3, Point3, SymmetricEigen, Vector3};
+use nalgebra::{Isometry3, Matrix3, Point3, SymmetricEigen, Vector3};
 
 fn median(v: &mut [f64]) -> f64 {
     v.sort_by(|a, b| a.total_cmp(b));
@@ -105,6 +105,52 @@ pub fn normal_of(pts: &[Vector3<f64>]) -> (Vector3<f64>, f64) {
     let total = eig.eigenvalues.iter().map(|l| l.max(0.0)).sum::<f64>();
     let variation = if total > 0.0 { eig.eigenvalues[i].max(0.0) / total } else { 1.0 / 3.0 };
     if v.iter().all(|x| x.is_finite()) && v.norm() > 0.5 { (v.normalize(), variation) } else { (Vector3::z(), 1.0 / 3.0) }
+}
+
+/// Contact areas \[m²\] between the parts' surfaces (model points moved by their poses) at the first grid
+/// frame in which both parts of a pair are seen: the number of model points of one part within
+/// `range` of the other's, times the surface each point stands for (`voxel²`), averaged over both
+/// directions. `poses[i][t]`: part `i`'s pose at frame `t` (None: not seen); `models[i]`: its
+/// model points in its reference configuration. Returns the symmetric `n x n` matrix, 0 on the
+/// diagonal and for pairs never seen together.
+pub fn contact_areas(poses: &[&[Option<Isometry3<f64>>]], models: &[&[Vector3<f64>]], range: f64, voxel: f64) -> Vec<Vec<f64>> {
+    use kiddo::{KdTree, SquaredEuclidean};
+    let n = poses.len();
+    let tree_of = |pose: &Isometry3<f64>, pts: &[Vector3<f64>]| {
+        let mut tree: KdTree<f64, 3> = KdTree::new();
+        let mut seen = std::collections::HashSet::new();
+        for (j, p) in pts.iter().enumerate() {
+            let x = pose * nalgebra::Point3::from(*p);
+            if seen.insert((x.x.to_bits(), x.y.to_bits(), x.z.to_bits())) {
+                tree.add(&[x.x, x.y, x.z], j as u64);
+            }
+        }
+        tree
+    };
+    let near = |tree: &KdTree<f64, 3>, pose: &Isometry3<f64>, pts: &[Vector3<f64>]| {
+        pts.iter()
+            .filter(|p| {
+                let x = pose * nalgebra::Point3::from(**p);
+                tree.nearest_one::<SquaredEuclidean>(&[x.x, x.y, x.z]).distance <= range * range
+            })
+            .count()
+    };
+    let mut a = vec![vec![0.0; n]; n];
+    for i in 0..n {
+        for k in i + 1..n {
+            let both = (0..poses[i].len()).find_map(|t| Some((poses[i][t]?, poses[k][t]?)));
+            let area = match both {
+                Some((pi, pk)) if !models[i].is_empty() && !models[k].is_empty() => {
+                    let (ti, tk) = (tree_of(&pi, models[i]), tree_of(&pk, models[k]));
+                    0.5 * (near(&tk, &pi, models[i]) + near(&ti, &pk, models[k])) as f64 * voxel * voxel
+                }
+                _ => 0.0,
+            };
+            a[i][k] = area;
+            a[k][i] = area;
+        }
+    }
+    a
 }
 
 #[cfg(test)]

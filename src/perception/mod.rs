@@ -213,7 +213,7 @@ impl Perception {
             let weights: Vec<f64> = pts
                 .iter()
                 .map(|p| {
-                    let near_other = by_label_len_gt1(&all, p, r2, label);
+                    let near_other = near_other_label(&all, p, r2, label);
                     if near_other { cfg.boundary_weight } else { 1.0 }
                 })
                 .collect();
@@ -282,7 +282,7 @@ impl Perception {
 }
 
 /// Whether a point of another label than `label` lies within `sqrt(r2)` of `p`.
-fn by_label_len_gt1(all: &KdTree<f64, 3>, p: &Vector3<f64>, r2: f64, label: u32) -> bool {
+fn near_other_label(all: &KdTree<f64, 3>, p: &Vector3<f64>, r2: f64, label: u32) -> bool {
     all.within_unsorted::<SquaredEuclidean>(&[p.x, p.y, p.z], r2).iter().any(|n| n.item != label as u64)
 }
 
