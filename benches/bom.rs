@@ -109,5 +109,76 @@ fn inference(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, physics, inference);
+/// Points on the surface of the box `lo`..`hi` (a deterministic lattice walk, `n` points).
+fn box_surface(lo: [f64; 3], hi: [f64; 3], n: usize) -> Vec<[f64; 3]> {
+    let mut out = Vec::with_capacity(n);
+    let (mut u, mut v) = (0.0f64, 0.0f64);
+    for i in 0..n {
+        // Low-discrepancy (golden-ratio) coordinates on the six faces.
+        u = (u + 0.618_033_988_75).fract();
+        v = (v + 0.754_877_666_25).fract();
+        let face = i % 6;
+        let (a, b) = ((face / 2 + 1) % 3, (face / 2 + 2) % 3);
+        let mut p = [0.0; 3];
+        p[face / 2] = if face % 2 == 0 { lo[face / 2] } else { hi[face / 2] };
+        p[a] = lo[a] + u * (hi[a] - lo[a]);
+        p[b] = lo[b] + v * (hi[b] - lo[b]);
+        out.push(p);
+    }
+    out
+}
+
+/// Perception as the node runs it: one cloud of a 4-part object (cabinet body, a door swinging
+/// about a vertical hinge, a sliding drawer, a shelf) with 20,000 labelled points, decoded,
+/// transformed and registered (tests/ros/throughput.py streams the same object over DDS).
+fn perception(c: &mut Criterion) {
+    use bom::input::pointcloud::encode_xyzl;
+    use bom::msgs::{Header, Time};
+    use bom::pipeline::online::Online;
+    let n = 5000;
+    let parts = [
+        box_surface([0.0, -0.4, 0.0], [0.4, 0.4, 0.8], n),
+        box_surface([0.42, -0.4, 0.02], [0.44, 0.0, 0.78], n),
+        box_surface([0.05, 0.02, 0.1], [0.41, 0.38, 0.3], n),
+        box_surface([0.0, -0.4, 0.85], [0.4, 0.4, 0.88], n),
+    ];
+    let frames: Vec<_> = (0..90)
+        .map(|k| {
+            let t = k as f64 / 30.0;
+            let (a, slide) = (0.2 * t, 0.05 * t);
+            let (ca, sa) = (a.cos(), a.sin());
+            let mut pts = Vec::new();
+            let mut labels = Vec::new();
+            for (i, part) in parts.iter().enumerate() {
+                for p in part {
+                    let q = match i {
+                        1 => {
+                            let (x, y) = (p[0] - 0.43, p[1] + 0.4);
+                            [0.43 + ca * x - sa * y, -0.4 + sa * x + ca * y, p[2]]
+                        }
+                        2 => [p[0] + slide, p[1], p[2]],
+                        _ => *p,
+                    };
+                    pts.push(q);
+                    labels.push(i as u32 + 1);
+                }
+            }
+            encode_xyzl(Header { stamp: Time::from_seconds(t), frame_id: "world".into() }, &pts, &labels)
+        })
+        .collect();
+    let cfg = Config::new();
+    let mut g = c.benchmark_group("perception");
+    g.sample_size(10);
+    g.bench_function("node perception: 90 clouds of a 4-part object, 20,000 points each (3 s at 30 Hz)", |b| {
+        b.iter(|| {
+            let mut on = Online::new(&cfg);
+            for f in &frames {
+                black_box(on.cloud("/segmented_points", f));
+            }
+        })
+    });
+    g.finish();
+}
+
+criterion_group!(benches, physics, inference, perception);
 criterion_main!(benches);

@@ -27,6 +27,7 @@ pub mod inference;
 pub mod input;
 pub mod model;
 pub mod msgs;
+pub mod node;
 pub mod output;
 pub mod perception;
 pub mod pipeline;

@@ -7,7 +7,7 @@ use clap::{Parser, Subcommand};
 
 use bom::config::Config;
 use bom::model::JointType;
-use bom::{eval, import, output, pipeline};
+use bom::{eval, import, node, output, pipeline};
 
 #[derive(Parser)]
 #[command(name = "bom", version, about = "Bayesian Object Models for ROS 2: articulated-object posteriors from segmented clouds")]
@@ -54,6 +54,17 @@ enum Command {
         #[arg(long)]
         baselines: bool,
     },
+    /// The live ROS 2 node (contract sections 1-2). Honours ROS_DOMAIN_ID and
+    /// ROS_AUTOMATIC_DISCOVERY_RANGE; stops on SIGINT/SIGTERM after publishing the last model.
+    Node {
+        /// ROS 2 parameters file (`bom: ros__parameters: ...`), e.g. config/bom.yaml.
+        #[arg(long)]
+        params_file: Option<PathBuf>,
+        /// ROS arguments as `ros2 run`/launch pass them: `--ros-args [-r FROM:=TO]...
+        /// [--params-file FILE] [-r __node:=NAME]`.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true, value_name = "--ros-args ...")]
+        ros_args: Vec<String>,
+    },
     /// Convert articulation_models track logs into a bag.
     ImportTracks {
         #[arg(required = true)]
@@ -95,9 +106,76 @@ fn replay(input: &ReplayInput) -> Result<(pipeline::Run, Config), ExitCode> {
     Ok((run, cfg))
 }
 
+/// Parse the `--ros-args` section of a node command line (ROS 2 conventions): `-r`/`--remap
+/// FROM:=TO` (`__node:=NAME` renames the node), `--params-file FILE`; other ROS arguments are
+/// reported and ignored.
+fn parse_ros_args(args: &[String], params_file: &mut Option<PathBuf>) -> Result<(String, Vec<(String, String)>), String> {
+    let mut name = "bom".to_string();
+    let mut remaps = Vec::new();
+    let mut it = args.iter();
+    let mut in_ros = false;
+    while let Some(a) = it.next() {
+        match a.as_str() {
+            "--ros-args" => in_ros = true,
+            "--" => in_ros = false,
+            _ if !in_ros => return Err(format!("unexpected argument '{a}' (ROS arguments follow --ros-args)")),
+            "-r" | "--remap" => {
+                let r = it.next().ok_or("-r needs FROM:=TO")?;
+                let (from, to) = r.split_once(":=").ok_or_else(|| format!("remapping '{r}' is not FROM:=TO"))?;
+                if from == "__node" || from == "__name" {
+                    name = to.to_string();
+                } else {
+                    remaps.push((from.to_string(), to.to_string()));
+                }
+            }
+            "--params-file" => *params_file = Some(it.next().ok_or("--params-file needs a FILE")?.into()),
+            "-p" | "--param" | "--log-level" | "-e" | "--enclave" => {
+                let v = it.next().map(String::as_str).unwrap_or("");
+                eprintln!("warning: ROS argument '{a} {v}' is not supported by bom node; ignored");
+            }
+            other => eprintln!("warning: ROS argument '{other}' is not supported by bom node; ignored"),
+        }
+    }
+    Ok((name, remaps))
+}
+
+fn run_node(mut params_file: Option<PathBuf>, ros_args: &[String]) -> ExitCode {
+    let (node_name, remaps) = match parse_ros_args(ros_args, &mut params_file) {
+        Ok(x) => x,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return ExitCode::from(EXIT_ARGS);
+        }
+    };
+    let config = match &params_file {
+        Some(path) => match Config::load(path) {
+            Ok(c) => c,
+            Err(e) => {
+                eprintln!("error: params file {e}");
+                return ExitCode::from(EXIT_ARGS);
+            }
+        },
+        None => Config::new(),
+    };
+    match node::run(node::NodeOptionsBom { config, node_name, remaps }) {
+        Ok(report) => {
+            eprint!("{}", node::render_report(&report));
+            ExitCode::SUCCESS
+        }
+        Err(e @ node::NodeError::Settings(_)) => {
+            eprintln!("error: {e}");
+            ExitCode::from(EXIT_ARGS)
+        }
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::from(EXIT_INPUT)
+        }
+    }
+}
+
 fn main() -> ExitCode {
     tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::try_from_env("BOM_LOG").unwrap_or_else(|_| "info".into()))
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_env("BOM_LOG").unwrap_or_else(|_| "info,rustdds=error,ros2_client=warn".into()))
         .with_writer(std::io::stderr)
         .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .with_target(false)
@@ -158,6 +236,7 @@ fn main() -> ExitCode {
             }
             ExitCode::SUCCESS
         }
+        Command::Node { params_file, ros_args } => run_node(params_file, &ros_args),
         Command::ImportTracks { files, out, joint, rate, grid } => {
             if !(rate.is_finite() && rate > 0.0) {
                 eprintln!("error: --rate must be a positive number of Hz, got {rate}");

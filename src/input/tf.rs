@@ -42,6 +42,12 @@ impl TfBuffer {
         TfBuffer { registry: Registry::new() }
     }
 
+    /// A buffer that forgets dynamic transforms older than `max_age` behind the newest one (for
+    /// the live node; static transforms never expire).
+    pub fn with_cache(max_age: std::time::Duration) -> Self {
+        TfBuffer { registry: Registry::with_max_age(max_age) }
+    }
+
     /// Add every transform of a `tf2_msgs/TFMessage`; `is_static` for `/tf_static`. Returns one
     /// error per rejected transform (non-finite values, a quaternion far from unit norm, a frame
     /// that is its own parent, a frame re-parented); the others are kept.

@@ -170,11 +170,20 @@ struct PartState {
 pub struct Perception {
     pub config: PerceptionConfig,
     parts: BTreeMap<u32, PartState>,
+    /// Registered frames kept per part for [`Perception::refine`] (`None`: all, for replay).
+    frame_limit: Option<usize>,
 }
 
 impl Perception {
     pub fn new(config: PerceptionConfig) -> Self {
-        Perception { config, parts: BTreeMap::new() }
+        Perception { config, parts: BTreeMap::new(), frame_limit: None }
+    }
+
+    /// Keep only the newest `n` registered frames per part for [`Perception::refine`], so that a
+    /// live node's memory stays bounded; older frames keep the poses they were given.
+    pub fn with_frame_limit(mut self, n: usize) -> Self {
+        self.frame_limit = Some(n);
+        self
     }
 
     /// Observe every part of one cloud; parts with fewer than `min_points` points, or whose points
@@ -237,6 +246,12 @@ impl Perception {
             let Some(reg) = state.tracker.update(&FramePoints { points: &pts, weights: &weights }, cfg) else { continue };
             let obs = observation(cloud.stamp, reg.pose, Some(&reg.information), state.anchor, cfg, pts.len(), dropped, reg.matched);
             state.frames.push((cloud.stamp, pts, weights));
+            if let Some(n) = self.frame_limit {
+                if state.frames.len() > n {
+                    let excess = state.frames.len() - n;
+                    state.frames.drain(..excess);
+                }
+            }
             out.push((label, obs));
         }
         out

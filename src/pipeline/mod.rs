@@ -5,6 +5,8 @@
 //! windows so far (contract section 1), and each update is kept so that the output bag carries
 //! the model as the node would have published it.
 
+pub mod online;
+
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};

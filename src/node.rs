@@ -1,0 +1,494 @@
+//! `bom node`: the live ROS 2 node. The same stages as `bom replay` ([`pipeline::online`]) fed by
+//! DDS instead of a bag, on `ros2-client` (native Rust DDS) and `tokio`.
+//!
+//! Tasks:
+//! - the **receive loop** takes `/tf`, `/tf_static`, the wrench and the clouds as they arrive,
+//!   runs perception on every cloud, publishes predicted part poses at the cloud rate from the
+//!   current posterior, and closes windows;
+//! - the **worker** runs BOM-SVI (a blocking task) on the evidence of all windows closed so far and
+//!   hands the posterior back to be published.
+//!
+//! Queue policy (bounded, nothing dropped silently): the worker has one pending slot. A window
+//! closing while the worker is busy replaces the pending job by one holding every window so far,
+//! so windows are *merged* into the next run, never dropped; each merge is counted and logged.
+//! DDS reader histories are bounded (clouds keep the last 10, wrenches and `/tf` the last 1000):
+//! a node that cannot keep up with perception loses the oldest samples there, as any ROS 2
+//! subscriber does.
+//!
+//! Network: `ROS_DOMAIN_ID` picks the DDS domain (default 0) and
+//! `ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST` (or `OFF`) keeps every packet on loopback, as in
+//! every ROS 2 Jazzy node. SIGINT and SIGTERM end the stream: open windows are closed, the last
+//! model is computed and published, and the node exits.
+
+use std::net::Ipv4Addr;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use futures::StreamExt;
+use nalgebra::{Isometry3, UnitQuaternion, Vector3};
+use ros2_client::dds::rustdds;
+use ros2_client::qos::{Durability, History, QosProfile};
+use ros2_client::{Context, MessageTypeName, Name, Node, NodeName, NodeOptions, Publisher};
+use tokio::sync::{mpsc, Notify};
+
+use crate::config::Config;
+use crate::inference::guide::GuideState;
+use crate::inference::Posterior;
+use crate::msgs::{MarkerArray, ModelCriticism, ObjectModel, PointCloud2, PoseArray, TFMessage, Time, WrenchStamped};
+use crate::output::messages;
+use crate::perception::PartObservation;
+use crate::pipeline::online::{Job, Online};
+
+/// Output topics (contract section 2); remappable like the inputs.
+#[derive(Debug, Clone)]
+pub struct OutputTopics {
+    pub object_model: String,
+    pub predicted_part_poses: String,
+    pub markers: String,
+    pub model_criticism: String,
+}
+
+impl Default for OutputTopics {
+    fn default() -> Self {
+        OutputTopics {
+            object_model: "/bom/object_model".into(),
+            predicted_part_poses: "/bom/predicted_part_poses".into(),
+            markers: "/bom/markers".into(),
+            model_criticism: "/bom/model_criticism".into(),
+        }
+    }
+}
+
+/// How the node was started: settings, node name and topic remappings (`--ros-args -r a:=b`).
+#[derive(Debug, Clone)]
+pub struct NodeOptionsBom {
+    pub config: Config,
+    pub node_name: String,
+    /// `(from, to)` topic remappings, applied to every input and output topic.
+    pub remaps: Vec<(String, String)>,
+}
+
+/// Why the node could not start (exit code 2 for settings, 3 for the middleware).
+#[derive(Debug, thiserror::Error)]
+pub enum NodeError {
+    #[error("{0}")]
+    Settings(String),
+    #[error("ROS 2 middleware: {0}")]
+    Middleware(String),
+}
+
+/// What the node did, printed when it stops.
+#[derive(Debug, Default)]
+pub struct NodeReport {
+    pub clouds: u64,
+    pub wrenches: u64,
+    pub windows: usize,
+    pub updates: u64,
+    /// Windows merged into a later inference run because the worker was busy.
+    pub merged: u64,
+    /// Perception CPU time per cloud \[s\].
+    pub perception_s: Vec<f64>,
+    /// Wall time from a window closing to its posterior being published \[s\].
+    pub latency_s: Vec<f64>,
+    /// Stream time covered by clouds \[s\].
+    pub stream_s: f64,
+    pub diagnostics: crate::diagnostics::Diagnostics,
+}
+
+/// The DDS domain and network settings from the environment, as a ROS 2 Jazzy node reads them.
+///
+/// # Errors
+/// A one-line message naming the variable when `ROS_DOMAIN_ID` is not an integer in 0..=232 or
+/// `ROS_AUTOMATIC_DISCOVERY_RANGE` is not one of `SUBNET`, `LOCALHOST`, `OFF`, `SYSTEM_DEFAULT`.
+pub fn participant_from_env() -> Result<rustdds::DomainParticipant, NodeError> {
+    let domain = match std::env::var("ROS_DOMAIN_ID") {
+        Ok(s) if !s.trim().is_empty() => match s.trim().parse::<u16>() {
+            Ok(d) if d <= 232 => d,
+            _ => return Err(NodeError::Settings(format!("ROS_DOMAIN_ID: '{s}' is not a domain id (0-232)"))),
+        },
+        _ => 0,
+    };
+    let range = std::env::var("ROS_AUTOMATIC_DISCOVERY_RANGE").unwrap_or_default();
+    let mut builder = rustdds::DomainParticipantBuilder::new(domain);
+    match range.trim().to_ascii_uppercase().as_str() {
+        "" | "SUBNET" | "SYSTEM_DEFAULT" => {}
+        "LOCALHOST" => builder = builder.with_only_networks([Ipv4Addr::LOCALHOST]),
+        "OFF" => {
+            // RustDDS cannot switch discovery off; loopback only is the nearest safe behaviour.
+            tracing::warn!("ROS_AUTOMATIC_DISCOVERY_RANGE=OFF: discovery limited to loopback (same as LOCALHOST)");
+            builder = builder.with_only_networks([Ipv4Addr::LOCALHOST]);
+        }
+        other => {
+            return Err(NodeError::Settings(format!(
+                "ROS_AUTOMATIC_DISCOVERY_RANGE: '{other}' (expected SUBNET, LOCALHOST, OFF or SYSTEM_DEFAULT)"
+            )))
+        }
+    }
+    if std::env::var("ROS_STATIC_PEERS").is_ok_and(|s| !s.trim().is_empty()) {
+        tracing::warn!("ROS_STATIC_PEERS is not supported by bom's DDS layer; ignored");
+    }
+    tracing::info!("DDS domain {domain}, discovery range {}", if range.is_empty() { "SUBNET" } else { &range });
+    builder.build().map_err(|e| NodeError::Middleware(format!("DDS participant: {e:?}")))
+}
+
+fn remap(name: &str, remaps: &[(String, String)]) -> String {
+    remaps.iter().find(|(from, _)| from == name).map(|(_, to)| to.clone()).unwrap_or_else(|| name.to_string())
+}
+
+fn topic_name(name: &str) -> Result<Name, NodeError> {
+    Name::parse(name).map_err(|e| NodeError::Settings(format!("topic '{name}': {e:?}")))
+}
+
+fn qos(reliable: bool, transient_local: bool, depth: usize) -> QosProfile {
+    let base = if reliable { QosProfile::publisher_default() } else { QosProfile::subscription_default() };
+    base.durability(if transient_local { Durability::TransientLocal } else { Durability::Volatile })
+        .history(History::KeepLast { depth })
+}
+
+/// The posterior the node predicts part poses from, with per-part tracking state.
+struct Predictor {
+    posterior: Posterior,
+    labels: Vec<u32>,
+    /// Centre of mass of each part in its reference frame \[m\] (perception geometry).
+    com: Vec<Vector3<f64>>,
+    coords: Vec<f64>,
+}
+
+impl Predictor {
+    fn new(posterior: Posterior, job: &Job) -> Self {
+        let labels: Vec<u32> = posterior.joints.iter().map(|j| j.child).collect();
+        let com = labels.iter().map(|l| job.geometry.get(l).map(|g| g.com).unwrap_or_default()).collect();
+        let coords = vec![0.0; labels.len()];
+        Predictor { posterior, labels, com, coords }
+    }
+
+    fn predict(&mut self, obs: &[(u32, PartObservation)]) -> Vec<Isometry3<f64>> {
+        let observed: Vec<Option<Vector3<f64>>> = self
+            .labels
+            .iter()
+            .zip(&self.com)
+            .map(|(l, c)| obs.iter().find(|(x, _)| x == l).map(|(_, o)| (o.pose * nalgebra::Point3::from(*c)).coords))
+            .collect();
+        // A part's frame is aligned with the fixed frame in its reference configuration.
+        let reference = vec![UnitQuaternion::identity(); self.labels.len()];
+        self.posterior.predict_poses(&observed, &mut self.coords, &reference)
+    }
+}
+
+/// One finished inference run.
+struct Update {
+    posterior: Posterior,
+    job: Job,
+    closed_at: Instant,
+}
+
+/// The worker's single pending slot (see the module docs for the policy).
+#[derive(Default)]
+struct Slot {
+    job: Option<(Job, Instant)>,
+    busy: bool,
+}
+
+struct Publishers {
+    model: Publisher<ObjectModel>,
+    poses: Publisher<PoseArray>,
+    markers: Publisher<MarkerArray>,
+    #[allow(dead_code)] // model criticism (issue 6) is published on it once it exists
+    criticism: Publisher<ModelCriticism>,
+}
+
+fn publish_update(p: &Publishers, u: &Update, cfg: &Config) {
+    let stamp = Time::from_seconds(u.job.windows.last().map(|w| w.end).unwrap_or(0.0));
+    let model = messages::object_model(&u.posterior, stamp, &cfg.fixed_frame, u.job.mode, u.job.windows.len() as u32);
+    if let Err(e) = p.model.publish(model) {
+        tracing::warn!("publishing the object model failed: {e:?}");
+    }
+    if let Err(e) = p.markers.publish(messages::markers(&u.posterior, stamp, &cfg.fixed_frame)) {
+        tracing::warn!("publishing markers failed: {e:?}");
+    }
+}
+
+/// Run the node until SIGINT or SIGTERM.
+///
+/// # Errors
+/// [`NodeError`] when the settings are invalid or DDS cannot start.
+pub fn run(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .map_err(|e| NodeError::Middleware(format!("tokio runtime: {e}")))?;
+    rt.block_on(run_async(opts))
+}
+
+async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
+    let cfg = opts.config.clone();
+    let mw = |e: &dyn std::fmt::Debug| NodeError::Middleware(format!("{e:?}"));
+    let context = Context::from_domain_participant(participant_from_env()?).map_err(|e| mw(&e))?;
+    let node_name = NodeName::new("/", &opts.node_name).map_err(|e| NodeError::Settings(format!("node name '{}': {e:?}", opts.node_name)))?;
+    let mut node: Node = context.new_node(node_name, NodeOptions::new().enable_rosout(true)).map_err(|e| mw(&e))?;
+    let spinner = node.spinner().map_err(|e| mw(&e))?;
+    let spin = tokio::spawn(spinner.spin());
+
+    let r = |n: &str| remap(n, &opts.remaps);
+    let t = &cfg.topics;
+    let (points_topic, wrench_topic, tf_topic, tf_static_topic) = (r(&t.points), r(&t.wrench), r(&t.tf), r(&t.tf_static));
+    let outputs = OutputTopics::default();
+    let mk_topic = |node: &mut Node, name: &str, pkg: &str, ty: &str, q: &QosProfile| {
+        node.create_topic(&topic_name(name)?, MessageTypeName::new(pkg, ty), q).map_err(|e| mw(&e))
+    };
+    // Inputs: clouds best effort (sensor data: matches best-effort and reliable publishers);
+    // wrenches and /tf reliable like tf2's listener; /tf_static transient local.
+    let q_points = qos(false, false, 10);
+    let q_wrench = qos(true, false, 1000);
+    let q_tf = qos(true, false, 1000);
+    let q_tf_static = qos(true, true, 100);
+    let topic = mk_topic(&mut node, &points_topic, "sensor_msgs", "PointCloud2", &q_points)?;
+    let sub_points = node.create_subscription::<PointCloud2>(&topic, Some(q_points.clone())).map_err(|e| mw(&e))?;
+    let topic = mk_topic(&mut node, &wrench_topic, "geometry_msgs", "WrenchStamped", &q_wrench)?;
+    let sub_wrench = node.create_subscription::<WrenchStamped>(&topic, Some(q_wrench.clone())).map_err(|e| mw(&e))?;
+    let topic = mk_topic(&mut node, &tf_topic, "tf2_msgs", "TFMessage", &q_tf)?;
+    let sub_tf = node.create_subscription::<TFMessage>(&topic, Some(q_tf.clone())).map_err(|e| mw(&e))?;
+    let topic = mk_topic(&mut node, &tf_static_topic, "tf2_msgs", "TFMessage", &q_tf_static)?;
+    let sub_tf_static = node.create_subscription::<TFMessage>(&topic, Some(q_tf_static.clone())).map_err(|e| mw(&e))?;
+
+    // Outputs, with the contract's QoS (section 2).
+    let q_model = qos(true, true, 1);
+    let q_poses = qos(true, false, 10);
+    let q_markers = qos(true, false, 1);
+    let topic = mk_topic(&mut node, &r(&outputs.object_model), "bom_msgs", "ObjectModel", &q_model)?;
+    let model = node.create_publisher::<ObjectModel>(&topic, Some(q_model.clone())).map_err(|e| mw(&e))?;
+    let topic = mk_topic(&mut node, &r(&outputs.predicted_part_poses), "geometry_msgs", "PoseArray", &q_poses)?;
+    let poses = node.create_publisher::<PoseArray>(&topic, Some(q_poses.clone())).map_err(|e| mw(&e))?;
+    let topic = mk_topic(&mut node, &r(&outputs.markers), "visualization_msgs", "MarkerArray", &q_markers)?;
+    let markers = node.create_publisher::<MarkerArray>(&topic, Some(q_markers.clone())).map_err(|e| mw(&e))?;
+    let topic = mk_topic(&mut node, &r(&outputs.model_criticism), "bom_msgs", "ModelCriticism", &q_model)?;
+    let criticism = node.create_publisher::<ModelCriticism>(&topic, Some(q_model.clone())).map_err(|e| mw(&e))?;
+    let pubs = Publishers { model, poses, markers, criticism };
+    tracing::info!(
+        "node '{}' up: clouds '{points_topic}', wrench '{wrench_topic}', tf '{tf_topic}', '{tf_static_topic}'; fixed frame '{}'",
+        opts.node_name,
+        cfg.fixed_frame
+    );
+
+    // Worker: one pending slot, one run at a time.
+    let slot = Arc::new(Mutex::new(Slot::default()));
+    let wake = Arc::new(Notify::new());
+    let (done_tx, mut done_rx) = mpsc::channel::<Update>(4);
+    {
+        let (slot, wake, cfg) = (slot.clone(), wake.clone(), cfg.clone());
+        tokio::spawn(async move {
+            let mut warm: Option<GuideState> = None;
+            loop {
+                let next = {
+                    let mut s = slot.lock().expect("slot lock");
+                    let j = s.job.take();
+                    s.busy = j.is_some();
+                    j
+                };
+                let Some((job, closed_at)) = next else {
+                    wake.notified().await;
+                    continue;
+                };
+                let (c, w) = (cfg.clone(), warm.take());
+                let res = tokio::task::spawn_blocking(move || {
+                    let fitted = job.fit(&c, w.as_ref());
+                    (job, fitted)
+                })
+                .await;
+                let update = match res {
+                    Ok((job, Some(f))) => {
+                        warm = Some(f.guide);
+                        Some(Update { posterior: f.posterior, job, closed_at })
+                    }
+                    Ok((_, None)) => {
+                        tracing::warn!("inference: no part was observed inside a window; no posterior");
+                        None
+                    }
+                    Err(e) => {
+                        tracing::error!("inference task failed: {e}");
+                        None
+                    }
+                };
+                if let Some(u) = update {
+                    if done_tx.send(u).await.is_err() {
+                        break;
+                    }
+                }
+                slot.lock().expect("slot lock").busy = false;
+            }
+        });
+    }
+    let submit = |on: &Online, report: &mut NodeReport| {
+        let mut s = slot.lock().expect("slot lock");
+        if s.job.is_some() {
+            report.merged += 1;
+            tracing::info!("inference busy: window merged into the next run ({} merged so far)", report.merged);
+        }
+        s.job = Some((on.job(), Instant::now()));
+        drop(s);
+        wake.notify_one();
+    };
+
+    let mut on = Online::new(&cfg);
+    let mut report = NodeReport::default();
+    let mut predictor: Option<Predictor> = None;
+    let mut first_stamp: Option<f64> = None;
+    let mut points = Box::pin(sub_points.async_stream());
+    let mut wrench = Box::pin(sub_wrench.async_stream());
+    let mut tf = Box::pin(sub_tf.async_stream());
+    let mut tf_static = Box::pin(sub_tf_static.async_stream());
+    let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
+        .map_err(|e| NodeError::Middleware(format!("SIGTERM handler: {e}")))?;
+
+    let handle_frames = |frames: Vec<(f64, Vec<(u32, PartObservation)>)>,
+                         predictor: &mut Option<Predictor>,
+                         first_stamp: &mut Option<f64>,
+                         report: &mut NodeReport| {
+        for (stamp, obs) in frames {
+            first_stamp.get_or_insert(stamp);
+            report.stream_s = stamp - first_stamp.unwrap_or(stamp);
+            if let Some(p) = predictor.as_mut() {
+                let poses = p.predict(&obs);
+                let msg = messages::pose_array(&poses, Time::from_seconds(stamp), &cfg.fixed_frame);
+                if let Err(e) = pubs.poses.publish(msg) {
+                    tracing::warn!("publishing predicted part poses failed: {e:?}");
+                }
+            }
+            report.clouds += 1;
+        }
+    };
+
+    loop {
+        tokio::select! {
+            Some(m) = points.next() => {
+                match m {
+                    Ok((cloud, _)) => {
+                        let t0 = cpu_time();
+                        let frames = on.cloud(&points_topic, &cloud);
+                        report.perception_s.push(cpu_time() - t0);
+                        handle_frames(frames, &mut predictor, &mut first_stamp, &mut report);
+                    }
+                    Err(e) => on.diag.warn(&points_topic, "undecodable message", &format!("{e:?}; message skipped")),
+                }
+                if on.close_windows() > 0 {
+                    submit(&on, &mut report);
+                }
+            }
+            Some(m) = wrench.next() => {
+                match m {
+                    Ok((w, _)) => {
+                        report.wrenches += 1;
+                        let frames = on.wrench(&wrench_topic, &w);
+                        handle_frames(frames, &mut predictor, &mut first_stamp, &mut report);
+                    }
+                    Err(e) => on.diag.warn(&wrench_topic, "undecodable message", &format!("{e:?}; message skipped")),
+                }
+                if on.close_windows() > 0 {
+                    submit(&on, &mut report);
+                }
+            }
+            Some(m) = tf.next() => match m {
+                Ok((msg, _)) => handle_frames(on.tf(&tf_topic, &msg, false), &mut predictor, &mut first_stamp, &mut report),
+                Err(e) => on.diag.warn(&tf_topic, "undecodable message", &format!("{e:?}; message skipped")),
+            },
+            Some(m) = tf_static.next() => match m {
+                Ok((msg, _)) => handle_frames(on.tf(&tf_static_topic, &msg, true), &mut predictor, &mut first_stamp, &mut report),
+                Err(e) => on.diag.warn(&tf_static_topic, "undecodable message", &format!("{e:?}; message skipped")),
+            },
+            Some(u) = done_rx.recv() => {
+                publish_update(&pubs, &u, &cfg);
+                report.updates += 1;
+                report.latency_s.push(u.closed_at.elapsed().as_secs_f64());
+                tracing::info!(
+                    "posterior after {} window(s) published {:.2} s after the window closed (ELBO {:.1})",
+                    u.job.windows.len(), u.closed_at.elapsed().as_secs_f64(), u.posterior.elbo
+                );
+                predictor = Some(Predictor::new(u.posterior, &u.job));
+            }
+            _ = tokio::signal::ctrl_c() => { tracing::info!("SIGINT: finishing"); break; }
+            _ = sigterm.recv() => { tracing::info!("SIGTERM: finishing"); break; }
+        }
+    }
+
+    // End of stream: close open windows, let the worker finish, publish the last model.
+    if on.flush() > 0 {
+        submit(&on, &mut report);
+    }
+    loop {
+        let idle = {
+            let s = slot.lock().expect("slot lock");
+            s.job.is_none() && !s.busy
+        };
+        if idle && done_rx.is_empty() {
+            break;
+        }
+        tokio::select! {
+            Some(u) = done_rx.recv() => {
+                publish_update(&pubs, &u, &cfg);
+                report.updates += 1;
+                report.latency_s.push(u.closed_at.elapsed().as_secs_f64());
+                tracing::info!("last posterior ({} window(s)) published", u.job.windows.len());
+            }
+            _ = tokio::time::sleep(Duration::from_millis(50)) => {}
+            _ = tokio::signal::ctrl_c() => { tracing::warn!("second SIGINT: exiting without the last model"); break; }
+        }
+    }
+    // Give reliable readers time to acknowledge the last samples before the participant goes.
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    report.windows = on.windows().len();
+    report.diagnostics = on.diag.clone();
+    // Tear down in order: spinner, endpoints, node, then the participant, so that DDS can tell
+    // its peers that the endpoints are gone.
+    drop((points, wrench, tf, tf_static));
+    drop((sub_points, sub_wrench, sub_tf, sub_tf_static, pubs));
+    drop(node); // stops the spinner
+    if tokio::time::timeout(Duration::from_secs(2), spin).await.is_err() {
+        tracing::warn!("ROS 2 spinner did not stop within 2 s");
+    }
+    drop(context);
+    Ok(report)
+}
+
+/// CPU time of this thread \[s\] (perception cost, independent of the other threads' load).
+fn cpu_time() -> f64 {
+    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
+    // SAFETY: clock_gettime only writes the timespec it is given.
+    unsafe {
+        libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut ts);
+    }
+    ts.tv_sec as f64 + ts.tv_nsec as f64 * 1e-9
+}
+
+/// Render the report printed when the node stops.
+pub fn render_report(r: &NodeReport) -> String {
+    let mut s = String::new();
+    let med = |v: &[f64]| {
+        let mut v = v.to_vec();
+        v.sort_by(|a, b| a.total_cmp(b));
+        if v.is_empty() { f64::NAN } else { v[v.len() / 2] }
+    };
+    let per_cloud = r.perception_s.iter().sum::<f64>() / r.perception_s.len().max(1) as f64;
+    let rate = if r.stream_s > 0.0 { r.clouds as f64 / r.stream_s } else { 0.0 };
+    s += &format!(
+        "bom node: {} clouds, {} wrenches, {} window(s), {} posterior update(s), {} window(s) merged into later runs\n",
+        r.clouds, r.wrenches, r.windows, r.updates, r.merged
+    );
+    s += &format!(
+        "  perception: {:.1} ms CPU per cloud (median {:.1}), {:.0}% of one core at the stream's {:.1} Hz\n",
+        per_cloud * 1e3,
+        med(&r.perception_s) * 1e3,
+        per_cloud * rate * 100.0,
+        rate
+    );
+    if !r.latency_s.is_empty() {
+        s += &format!("  window closed -> posterior published: median {:.2} s, max {:.2} s\n", med(&r.latency_s), r.latency_s.iter().cloned().fold(0.0, f64::max));
+    }
+    if r.diagnostics.total() > 0 {
+        s += &format!("  bad input: {} event(s)\n", r.diagnostics.total());
+        for (k, n) in r.diagnostics.counts() {
+            s += &format!("    {k}: {n}\n");
+        }
+    }
+    s
+}

@@ -1,0 +1,415 @@
+//! The pipeline fed one message at a time (`bom node`): the same stages as [`replay`](super::replay)
+//! — input decoding, perception, windows, evidence — with the state a live stream needs.
+//!
+//! Differences from the batch replay, each forced by not knowing the future:
+//! - A message whose transform to the fixed frame is not buffered yet waits, as in a tf2 message
+//!   filter, until the transform arrives, or `/tf` has moved [`TF_WAIT_S`] past its stamp, or any
+//!   input topic has moved [`TF_WAIT_MAX_S`] past it; it is then dropped with a warning.
+//! - A window is *closed* once nothing later can change it: the data have moved past its end by
+//!   the merge gap plus the margin before a following window. [`Online::flush`] closes the last
+//!   one at the end of the stream as replay does at the end of a bag.
+//! - Perception refines the poses (see [`Perception::refine`]) when windows close, with the part
+//!   models as they are then, and keeps a bounded number of frames' points for that.
+//! - Wrenches, part observations and transforms outside the closed windows and older than the
+//!   open tail are dropped, so memory stays bounded on a node that runs for hours.
+//!
+//! What comes out is the same as replay's for the same messages: same windows, same pushed
+//! parts, and evidence built by the same [`Evidence::new`](crate::model::likelihood::Evidence::new).
+
+use std::collections::{BTreeMap, HashMap, VecDeque};
+
+use nalgebra::Point3;
+
+use crate::config::Config;
+use crate::diagnostics::Diagnostics;
+use crate::inference::guide::GuideState;
+use crate::inference::svi;
+use crate::model::likelihood::Evidence;
+use crate::input::pointcloud::{self, LabeledPoints};
+use crate::input::tf::TfBuffer;
+use crate::input::{CloudFrame, WrenchSample};
+use crate::msgs::{Header, PointCloud2, TFMessage, WrenchStamped};
+use crate::perception::{self, PartGeometry, PartObservation, PartTracks, Perception};
+use crate::windows::{self, Window};
+
+/// How long a message may wait for its transform \[s\]: dropped once `/tf` has moved this far
+/// past its stamp (tf2 message filters typically wait a fraction of a second) ...
+pub const TF_WAIT_S: f64 = 0.5;
+/// ... or once any input topic has moved this far past it (a frame that no `/tf` message will
+/// ever bring, e.g. with only `/tf_static`, or `/tf` stopped).
+pub const TF_WAIT_MAX_S: f64 = 3.0;
+/// Messages held waiting for transforms at most; beyond, the oldest is dropped with a warning.
+pub const MAX_HELD: usize = 4096;
+/// Registered frames per part kept for the refine pass when a window closes (30 s at 30 Hz).
+pub const REFINE_FRAMES: usize = 900;
+/// Transforms kept in the buffer, in stream time \[s\] (tf2's default cache is 10 s).
+pub const TF_CACHE_S: f64 = 30.0;
+
+/// Everything inference needs for one posterior update: a snapshot of the evidence so far.
+#[derive(Debug, Clone)]
+pub struct Job {
+    /// `kinematic` or `dynamic`.
+    pub mode: &'static str,
+    pub tracks: PartTracks,
+    pub geometry: BTreeMap<u32, PartGeometry>,
+    /// Every window closed so far, in time order.
+    pub windows: Vec<Window>,
+    pub wrenches: Vec<WrenchSample>,
+}
+
+enum Held {
+    Cloud { topic: String, header: Header, points: LabeledPoints },
+    Wrench { topic: String, msg: WrenchStamped },
+}
+
+impl Held {
+    fn stamp(&self) -> f64 {
+        match self {
+            Held::Cloud { header, .. } => header.stamp.seconds(),
+            Held::Wrench { msg, .. } => msg.header.stamp.seconds(),
+        }
+    }
+}
+
+/// A rising edge of the applied force: the start of a push, and the part nearest to it in the
+/// cloud nearest in time (contract section 1: "the pushed part is the one whose points lie
+/// nearest to the contact point").
+#[derive(Debug, Clone)]
+struct Contact {
+    stamp: f64,
+    point: Point3<f64>,
+    /// (|cloud stamp - contact stamp|, nearest label) of the best cloud so far.
+    best: Option<(f64, u32)>,
+}
+
+/// The streaming pipeline: feed it `/tf`, `/tf_static`, clouds and wrenches as they arrive.
+pub struct Online {
+    cfg: Config,
+    tf: TfBuffer,
+    perception: Perception,
+    tracks: PartTracks,
+    wrenches: Vec<WrenchSample>,
+    closed: Vec<Window>,
+    contacts: Vec<Contact>,
+    last_cloud: Option<CloudFrame>,
+    force_above: bool,
+    saw_wrench: bool,
+    held: VecDeque<Held>,
+    last_stamp: HashMap<String, f64>,
+    /// Newest header stamp on any input topic \[s\].
+    clock: f64,
+    /// Newest stamp of a dynamic transform \[s\].
+    tf_clock: f64,
+    first_cloud: Option<f64>,
+    last_cloud_stamp: f64,
+    /// Bad input, counted (contract: never silently dropped).
+    pub diag: Diagnostics,
+}
+
+impl Online {
+    pub fn new(cfg: &Config) -> Self {
+        Online {
+            cfg: cfg.clone(),
+            tf: TfBuffer::with_cache(std::time::Duration::from_secs_f64(TF_CACHE_S)),
+            perception: Perception::new(cfg.perception.clone()).with_frame_limit(REFINE_FRAMES),
+            tracks: PartTracks::new(),
+            wrenches: Vec::new(),
+            closed: Vec::new(),
+            contacts: Vec::new(),
+            last_cloud: None,
+            force_above: false,
+            saw_wrench: false,
+            held: VecDeque::new(),
+            last_stamp: HashMap::new(),
+            clock: f64::NEG_INFINITY,
+            tf_clock: f64::NEG_INFINITY,
+            first_cloud: None,
+            last_cloud_stamp: f64::NEG_INFINITY,
+            diag: Diagnostics::default(),
+        }
+    }
+
+    /// `kinematic` until the first valid wrench, then `dynamic` (contract section 1).
+    pub fn mode(&self) -> &'static str {
+        if self.saw_wrench { "dynamic" } else { "kinematic" }
+    }
+
+    /// Windows closed so far.
+    pub fn windows(&self) -> &[Window] {
+        &self.closed
+    }
+
+    /// The part tracks so far (in the fixed frame).
+    pub fn tracks(&self) -> &PartTracks {
+        &self.tracks
+    }
+
+    /// Geometry of every part's model as it is now.
+    pub fn geometry(&self) -> BTreeMap<u32, PartGeometry> {
+        self.perception.geometry()
+    }
+
+    /// Buffer a `tf2_msgs/TFMessage` and release the messages that were waiting for it.
+    /// Returns the perception results of released clouds, in order (see [`Online::cloud`]).
+    pub fn tf(&mut self, topic: &str, msg: &TFMessage, is_static: bool) -> Vec<(f64, Vec<(u32, PartObservation)>)> {
+        for e in self.tf.add(msg, is_static) {
+            self.diag.warn(topic, "transform rejected", &e.to_string());
+        }
+        if let Some(t) = msg.transforms.iter().map(|t| t.header.stamp.seconds()).reduce(f64::max) {
+            if !is_static {
+                self.clock = self.clock.max(t);
+                self.tf_clock = self.tf_clock.max(t);
+            }
+        }
+        self.release()
+    }
+
+    /// One `sensor_msgs/PointCloud2`. Returns the perception results of every cloud this made
+    /// ready (usually this one; none while it waits for its transform): its stamp \[s\] and the
+    /// parts observed.
+    pub fn cloud(&mut self, topic: &str, cloud: &PointCloud2) -> Vec<(f64, Vec<(u32, PartObservation)>)> {
+        let points = match pointcloud::decode(cloud) {
+            Ok(lp) => lp,
+            Err(e) => {
+                self.diag.warn(topic, "malformed PointCloud2", &format!("{e}; cloud skipped"));
+                return Vec::new();
+            }
+        };
+        if points.nonfinite > 0 {
+            self.diag.warn(topic, "non-finite points", &format!("{} NaN/Inf points skipped", points.nonfinite));
+        }
+        if points.bad_labels > 0 {
+            self.diag.warn(&format!("{topic}.label"), "non-integer label", &format!("{} points skipped", points.bad_labels));
+        }
+        self.clock = self.clock.max(cloud.header.stamp.seconds());
+        self.held.push_back(Held::Cloud { topic: topic.into(), header: cloud.header.clone(), points });
+        self.release()
+    }
+
+    /// One `geometry_msgs/WrenchStamped`. Returns the perception results of clouds it released.
+    pub fn wrench(&mut self, topic: &str, msg: &WrenchStamped) -> Vec<(f64, Vec<(u32, PartObservation)>)> {
+        let (f, t) = (msg.wrench.force, msg.wrench.torque);
+        if ![f.x, f.y, f.z, t.x, t.y, t.z].iter().all(|x| x.is_finite()) {
+            self.diag.warn(&format!("{topic}.wrench"), "non-finite wrench", "NaN or Inf in force/torque; message skipped");
+            return Vec::new();
+        }
+        self.clock = self.clock.max(msg.header.stamp.seconds());
+        self.held.push_back(Held::Wrench { topic: topic.into(), msg: msg.clone() });
+        self.release()
+    }
+
+    /// Process held messages in arrival order while their transforms are known; drop the head
+    /// when it has waited too long.
+    fn release(&mut self) -> Vec<(f64, Vec<(u32, PartObservation)>)> {
+        let mut out = Vec::new();
+        while self.held.len() > MAX_HELD {
+            let h = self.held.pop_front().expect("non-empty");
+            let topic = match &h {
+                Held::Cloud { topic, .. } | Held::Wrench { topic, .. } => topic.clone(),
+            };
+            self.diag.warn(&topic, "waiting for transform", &format!("more than {MAX_HELD} messages held; oldest (t={:.3} s) dropped", h.stamp()));
+        }
+        while let Some(h) = self.held.front() {
+            let (frame, stamp) = match h {
+                Held::Cloud { header, .. } => (header.frame_id.clone(), header.stamp),
+                Held::Wrench { msg, .. } => (msg.header.frame_id.clone(), msg.header.stamp),
+            };
+            match self.tf.lookup(&self.cfg.fixed_frame, &frame, stamp) {
+                Ok(iso) => {
+                    let h = self.held.pop_front().expect("non-empty");
+                    match h {
+                        Held::Cloud { topic, header, points } => {
+                            let t = header.stamp.seconds();
+                            if self.monotonic(&topic, t) {
+                                let c = CloudFrame {
+                                    stamp: t,
+                                    points: points.points.iter().map(|p| iso * Point3::new(p[0], p[1], p[2])).collect(),
+                                    labels: points.labels,
+                                };
+                                out.push((t, self.observe(c)));
+                            }
+                        }
+                        Held::Wrench { topic, msg } => {
+                            let t = msg.header.stamp.seconds();
+                            if self.monotonic(&topic, t) {
+                                let (f, q) = (msg.wrench.force, msg.wrench.torque);
+                                self.add_wrench(WrenchSample {
+                                    stamp: t,
+                                    point: iso * Point3::origin(),
+                                    force: iso.rotation * nalgebra::Vector3::new(f.x, f.y, f.z),
+                                    torque: iso.rotation * nalgebra::Vector3::new(q.x, q.y, q.z),
+                                });
+                            }
+                        }
+                    }
+                }
+                Err(e) if self.tf_clock - stamp.seconds() > TF_WAIT_S || self.clock - stamp.seconds() > TF_WAIT_MAX_S => {
+                    let h = self.held.pop_front().expect("non-empty");
+                    let what = match h {
+                        Held::Cloud { topic, .. } => (topic, "cloud"),
+                        Held::Wrench { topic, .. } => (topic, "wrench"),
+                    };
+                    self.diag.warn(&format!("{}.header.frame_id", what.0), "unknown frame", &format!("{e}; {} skipped", what.1));
+                }
+                Err(_) => break,
+            }
+        }
+        out
+    }
+
+    fn monotonic(&mut self, topic: &str, stamp: f64) -> bool {
+        if let Some(&prev) = self.last_stamp.get(topic) {
+            if stamp < prev {
+                self.diag.warn(topic, "time went backwards", &format!("header.stamp {stamp:.6} s after {prev:.6} s; message skipped"));
+                return false;
+            }
+        }
+        self.last_stamp.insert(topic.into(), stamp);
+        true
+    }
+
+    fn observe(&mut self, cloud: CloudFrame) -> Vec<(u32, PartObservation)> {
+        self.first_cloud.get_or_insert(cloud.stamp);
+        self.last_cloud_stamp = cloud.stamp;
+        for c in &mut self.contacts {
+            let dt = (cloud.stamp - c.stamp).abs();
+            if c.best.is_none_or(|(b, _)| dt < b) {
+                if let Some((label, _)) = perception::nearest_part(&cloud, &c.point) {
+                    c.best = Some((dt, label));
+                }
+            }
+        }
+        let obs = self.perception.observe(&cloud);
+        for (label, o) in &obs {
+            self.tracks.entry(*label).or_default().push(o.clone());
+        }
+        self.last_cloud = Some(cloud);
+        obs
+    }
+
+    fn add_wrench(&mut self, w: WrenchSample) {
+        let above = w.force.norm() > self.cfg.windows.force_open_n;
+        if above && !self.force_above {
+            let mut c = Contact { stamp: w.stamp, point: w.point, best: None };
+            if let Some(cloud) = &self.last_cloud {
+                c.best = perception::nearest_part(cloud, &w.point).map(|(l, _)| ((cloud.stamp - w.stamp).abs(), l));
+            }
+            self.contacts.push(c);
+        }
+        self.force_above = above;
+        self.saw_wrench = true;
+        self.wrenches.push(w);
+    }
+
+    /// Start of the data not yet in a closed window.
+    fn tail_start(&self) -> f64 {
+        self.closed.last().map(|w| w.end).or(self.first_cloud).unwrap_or(f64::NEG_INFINITY)
+    }
+
+    /// Windows found in the data after the last closed window; with `at_end`, the open one is
+    /// closed at the end of the data (as replay closes it at the end of a bag).
+    fn candidate_windows(&self, at_end: bool) -> Vec<Window> {
+        let Some(first) = self.first_cloud else { return Vec::new() };
+        let t_min = self.closed.last().map(|w| w.end).unwrap_or(first);
+        let t_max = self.last_cloud_stamp;
+        let ws = if self.mode() == "dynamic" {
+            let from = self.wrenches.partition_point(|w| w.stamp <= t_min);
+            windows::force_windows(&self.wrenches[from..], &self.cfg.windows, t_min, t_max)
+        } else {
+            let span = self.cfg.windows.speed_span_s;
+            let tail: PartTracks = self
+                .tracks
+                .iter()
+                .map(|(l, obs)| (*l, obs[obs.partition_point(|o| o.stamp < t_min - span)..].to_vec()))
+                .collect();
+            windows::motion_windows(&tail, &self.cfg.windows)
+        };
+        let wc = &self.cfg.windows;
+        // Nothing after `now` can extend or merge into a window that ends this long before it.
+        let now = if self.mode() == "dynamic" {
+            self.wrenches.last().map_or(t_max, |w| w.stamp.min(t_max))
+        } else {
+            t_max
+        };
+        ws.into_iter()
+            .filter(|w| w.start >= t_min && w.end > w.start)
+            .filter(|w| at_end || (w.end < t_max && w.end + wc.merge_gap_s + wc.margin_before_s < now))
+            .collect()
+    }
+
+    /// Close the windows that nothing later can change; returns how many closed. Call after
+    /// each message (cheap: only the data after the last closed window are searched).
+    pub fn close_windows(&mut self) -> usize {
+        self.close(false)
+    }
+
+    /// End of stream: close every open window (replay's rule at the end of a bag); when the
+    /// whole stream had no window at all, use it whole, as replay does. Returns how many closed.
+    pub fn flush(&mut self) -> usize {
+        // Release what still waits for a transform, if it can be.
+        self.clock = f64::INFINITY;
+        self.tf_clock = f64::INFINITY;
+        self.release();
+        let n = self.close(true);
+        if self.closed.is_empty() {
+            if let Some(first) = self.first_cloud {
+                self.diag.warn(&self.cfg.topics.points, "no interaction window", "no motion or force period found; using the whole stream as one window");
+                self.closed.push(Window { start: first, end: self.last_cloud_stamp, pushed_part: None });
+                self.perception.refine(&mut self.tracks);
+                return 1;
+            }
+        }
+        n
+    }
+
+    fn close(&mut self, at_end: bool) -> usize {
+        let mut new = self.candidate_windows(at_end);
+        if new.is_empty() {
+            return 0;
+        }
+        let dynamic = self.mode() == "dynamic";
+        for w in &mut new {
+            if dynamic {
+                w.pushed_part = self.contacts.iter().find(|c| w.contains(c.stamp)).and_then(|c| c.best.map(|b| b.1));
+            }
+        }
+        let n = new.len();
+        self.closed.extend(new);
+        self.perception.refine(&mut self.tracks);
+        self.prune();
+        n
+    }
+
+    /// Drop what no later window or update can use: wrenches, observations and contacts between
+    /// closed windows (evidence only uses frames inside windows).
+    fn prune(&mut self) {
+        let tail = self.tail_start();
+        let closed = &self.closed;
+        let keep = |t: f64| t > tail - self.cfg.windows.margin_before_s - self.cfg.windows.speed_span_s || closed.iter().any(|w| w.contains(t));
+        self.wrenches.retain(|w| keep(w.stamp));
+        for obs in self.tracks.values_mut() {
+            obs.retain(|o| keep(o.stamp));
+        }
+        self.contacts.retain(|c| c.stamp > tail - 1.0);
+    }
+
+    /// The evidence so far, for an inference run.
+    pub fn job(&self) -> Job {
+        Job {
+            mode: self.mode(),
+            tracks: self.tracks.clone(),
+            geometry: self.geometry(),
+            windows: self.closed.clone(),
+            wrenches: self.wrenches.clone(),
+        }
+    }
+}
+
+impl Job {
+    /// Run BOM-SVI on this evidence (the node's worker task), warm-started from the previous
+    /// update's guide when given. `None` when no part was seen inside a window.
+    pub fn fit(&self, cfg: &Config, warm: Option<&GuideState>) -> Option<svi::Fitted> {
+        let ev = Evidence::new(&self.tracks, &self.geometry, &self.windows, &self.wrenches, &[], &super::grid(cfg));
+        svi::fit(&ev, &cfg.model, &cfg.inference, warm)
+    }
+}

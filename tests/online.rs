@@ -1,0 +1,78 @@
+//! The streaming pipeline of `bom node` against `bom replay`: the same bag's messages, fed one at
+//! a time in recording order, give the same windows, pushed parts and posterior as the replay.
+
+use std::path::{Path, PathBuf};
+
+use bom::config::Config;
+use bom::diagnostics::Diagnostics;
+use bom::input::read_bag;
+use bom::msgs::{decode_cdr, PointCloud2, TFMessage, WrenchStamped};
+use bom::pipeline::{self, online::Online};
+
+fn bag(rel: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(rel)
+}
+
+/// Feed every message of `path` in log-time order; returns the pipeline after `flush` and the
+/// number of windows that closed before the end of the stream.
+fn stream(path: &Path, cfg: &Config) -> (Online, usize) {
+    let mut diag = Diagnostics::default();
+    let mut b = read_bag(path, &mut diag).unwrap();
+    b.messages.sort_by_key(|m| m.log_time);
+    let mut on = Online::new(cfg);
+    let t = &cfg.topics;
+    for m in &b.messages {
+        if m.topic == t.tf || m.topic == t.tf_static {
+            on.tf(&m.topic, &decode_cdr::<TFMessage>(&m.data).unwrap(), m.topic == t.tf_static);
+        } else if m.topic == t.points {
+            on.cloud(&m.topic, &decode_cdr::<PointCloud2>(&m.data).unwrap());
+        } else if m.topic == t.wrench {
+            on.wrench(&m.topic, &decode_cdr::<WrenchStamped>(&m.data).unwrap());
+        }
+        on.close_windows();
+    }
+    let live = on.windows().len();
+    on.flush();
+    (on, live)
+}
+
+/// `closes_live`: a window closes before the end of the stream (a real track that moves to its
+/// last frame has its only window closed by the end of the stream).
+fn agree(rel: &str, closes_live: bool) {
+    let cfg = Config::new();
+    let path = bag(rel);
+    let replay = pipeline::replay(std::slice::from_ref(&path), &cfg).unwrap();
+    let (on, live) = stream(&path, &cfg);
+    assert_eq!(on.diag.total(), 0, "{rel}: {:?}", on.diag.counts());
+    assert_eq!(on.mode(), replay.mode, "{rel}");
+    let (a, b) = (on.windows(), &replay.windows);
+    assert_eq!(a.len(), b.len(), "{rel}: streamed {a:?} vs replay {b:?}");
+    if closes_live {
+        assert!(live >= 1, "{rel}: no window closed while streaming");
+    }
+    for (x, y) in a.iter().zip(b) {
+        assert!((x.start - y.start).abs() < 1e-6 && (x.end - y.end).abs() < 1e-6, "{rel}: {x:?} vs {y:?}");
+        assert_eq!(x.pushed_part, y.pushed_part, "{rel}");
+    }
+    let fitted = on.job().fit(&cfg, None).expect("a posterior");
+    let want = replay.posterior.as_ref().unwrap();
+    assert_eq!(fitted.posterior.joints.len(), want.joints.len());
+    for (j, r) in fitted.posterior.joints.iter().zip(&want.joints) {
+        assert_eq!((j.child, j.parent, j.map_type), (r.child, r.parent, r.map_type), "{rel}");
+        if let (Some(x), Some(y)) = (&j.axis, &r.axis) {
+            let angle = x.direction.dot(&y.direction).abs().min(1.0).acos().to_degrees();
+            let spread = 3.0 * x.direction_sd_deg.max(y.direction_sd_deg).max(0.5);
+            assert!(angle <= spread, "{rel}: part {} axis {angle:.2} deg apart (spread {spread:.2})", j.child);
+        }
+    }
+}
+
+#[test]
+fn streamed_dynamic_bag_agrees_with_replay() {
+    agree("bags/mujoco/drawer.mcap", true);
+}
+
+#[test]
+fn streamed_kinematic_bag_agrees_with_replay() {
+    agree("bags/sturm/left_door_001.mcap", false);
+}

@@ -1,0 +1,228 @@
+#!/usr/bin/env python3
+"""Interop test of `bom node` against a real rclpy (ROS 2 Jazzy, Fast DDS) node.
+
+1. Starts `bom node --params-file config/bom.yaml`.
+2. An rclpy node publishes three bad messages (a malformed PointCloud2, a WrenchStamped with NaN, a
+   cloud in an unknown frame), then plays a bag from bags/ in real time (the recorded CDR bytes,
+   on the recorded topics, paced by log time).
+3. An rclpy subscriber receives /bom/object_model (bom_msgs/ObjectModel) and
+   /bom/predicted_part_poses (geometry_msgs/PoseArray).
+4. SIGINT stops the node, which publishes its last model; that model is compared with
+   `bom replay` of the same bag: same parts, same most probable joint types and parents, axes
+   within the reported spread. The node must have logged and counted each bad message.
+
+Run by .ci/run (tests/ros/run_interop.sh sets up the environment). Loopback only: the caller sets
+ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and a ROS_DOMAIN_ID of its own; both nodes honour them.
+Exit status 0 when every check passes; each failed check prints one line.
+"""
+
+import argparse
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import rclpy
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from mcap.reader import make_reader
+
+from bom_msgs.msg import ObjectModel
+from geometry_msgs.msg import PoseArray, WrenchStamped
+from sensor_msgs.msg import PointCloud2, PointField
+from tf2_msgs.msg import TFMessage
+
+TYPES = {
+    "sensor_msgs/msg/PointCloud2": PointCloud2,
+    "geometry_msgs/msg/WrenchStamped": WrenchStamped,
+    "tf2_msgs/msg/TFMessage": TFMessage,
+}
+
+failures = []
+
+
+def check(ok, what):
+    print(("ok    " if ok else "FAIL  ") + what, flush=True)
+    if not ok:
+        failures.append(what)
+
+
+def qos(reliable=True, transient=False, depth=10):
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=depth,
+        reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if transient else DurabilityPolicy.VOLATILE,
+    )
+
+
+def read_bag(path):
+    """(log_time_ns, topic, schema, cdr bytes) in log-time order."""
+    out = []
+    with open(path, "rb") as f:
+        for schema, channel, message in make_reader(f).iter_messages(log_time_order=True):
+            if schema is not None and schema.name in TYPES:
+                out.append((message.log_time, channel.topic, schema.name, bytes(message.data)))
+    return out
+
+
+def stamp_of(sec):
+    from builtin_interfaces.msg import Time
+
+    return Time(sec=int(sec), nanosec=int(round((sec - int(sec)) * 1e9)))
+
+
+def bad_messages(t):
+    """The three bad inputs of issue 5, stamped `t` (before the bag starts)."""
+    fields = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1) for i, n in enumerate("xyz")]
+    fields.append(PointField(name="label", offset=12, datatype=PointField.UINT32, count=1))
+    malformed = PointCloud2(height=1, width=100, fields=fields, is_bigendian=False, point_step=16, row_step=1600, data=bytes(160), is_dense=True)
+    malformed.header.stamp = stamp_of(t)
+    malformed.header.frame_id = "world"
+    nan = WrenchStamped()
+    nan.header.stamp = stamp_of(t)
+    nan.header.frame_id = "world"
+    nan.wrench.force.x = math.nan
+    unknown = PointCloud2(height=1, width=1, fields=fields, is_bigendian=False, point_step=16, row_step=16, data=bytes(16), is_dense=True)
+    unknown.header.stamp = stamp_of(t)
+    unknown.header.frame_id = "nowhere"
+    return malformed, nan, unknown
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--bom", default="target/release/bom")
+    ap.add_argument("--bag", default="bags/mujoco/drawer.mcap")
+    ap.add_argument("--params-file", default="config/bom.yaml")
+    ap.add_argument("--log", default="target/interop-node.log")
+    args = ap.parse_args()
+    for var in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE"):
+        check(var in os.environ, f"{var} is set ({os.environ.get(var)})")
+    if os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") != "LOCALHOST":
+        print("refusing to run: ROS_AUTOMATIC_DISCOVERY_RANGE must be LOCALHOST (loopback only)")
+        return 2
+
+    # The reference: bom replay of the same bag.
+    replay_json = args.log + ".replay.json"
+    subprocess.run([args.bom, "replay", args.bag, "--json", replay_json], check=True, stdout=subprocess.DEVNULL)
+    with open(replay_json) as f:
+        replay = json.load(f)
+
+    log = open(args.log, "w")
+    node_proc = subprocess.Popen([args.bom, "node", "--params-file", args.params_file], stdout=log, stderr=subprocess.STDOUT)
+
+    rclpy.init()
+    node = rclpy.create_node("bom_interop_test")
+    pubs = {
+        "/segmented_points": node.create_publisher(PointCloud2, "/segmented_points", qos(reliable=False, depth=10)),
+        "/applied_wrench": node.create_publisher(WrenchStamped, "/applied_wrench", qos(depth=100)),
+        "/tf": node.create_publisher(TFMessage, "/tf", qos(depth=100)),
+        "/tf_static": node.create_publisher(TFMessage, "/tf_static", qos(transient=True, depth=100)),
+    }
+    models, poses = [], []
+    node.create_subscription(ObjectModel, "/bom/object_model", models.append, qos(transient=True, depth=1))
+    node.create_subscription(PoseArray, "/bom/predicted_part_poses", poses.append, qos(depth=100))
+    executor = MultiThreadedExecutor()
+    executor.add_node(node)
+    spin = threading.Thread(target=executor.spin, daemon=True)
+    spin.start()
+
+    # Discovery, both ways.
+    deadline = time.time() + 30
+    while time.time() < deadline:
+        matched = all(p.get_subscription_count() > 0 for p in pubs.values())
+        if matched and node.count_publishers("/bom/object_model") > 0 and node.count_publishers("/bom/predicted_part_poses") > 0:
+            break
+        time.sleep(0.1)
+    check(all(p.get_subscription_count() > 0 for p in pubs.values()), "bom node subscribes to every input topic")
+    check(node.count_publishers("/bom/object_model") > 0, "bom node publishes /bom/object_model")
+    time.sleep(1.0)  # let the matched readers settle before the first samples
+
+    messages = read_bag(args.bag)
+    first = messages[0][0]
+    bad_t = max(first * 1e-9 - 1.0, 0.0)
+    malformed, nan, unknown = bad_messages(bad_t)
+    pubs["/segmented_points"].publish(malformed)
+    pubs["/applied_wrench"].publish(nan)
+    pubs["/segmented_points"].publish(unknown)
+
+    start = time.monotonic() + 0.2
+    for log_time, topic, _schema, data in messages:
+        delay = start + (log_time - first) * 1e-9 - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+        pubs[topic].publish(data)  # the recorded CDR bytes, as ros2 bag play sends them
+    lag = time.monotonic() - (start + (messages[-1][0] - first) * 1e-9)
+    print(f"played {len(messages)} messages of {args.bag} in real time (lag at the end {lag:.3f} s)")
+    check(node_proc.poll() is None, "bom node still running after the bad input and the bag")
+    time.sleep(1.0)
+
+    node_proc.send_signal(signal.SIGINT)
+    try:
+        code = node_proc.wait(timeout=120)
+    except subprocess.TimeoutExpired:
+        node_proc.kill()
+        code = None
+    time.sleep(0.5)
+    log.close()
+    executor.shutdown()
+    node.destroy_node()
+    rclpy.shutdown()
+    with open(args.log) as f:
+        node_log = f.read()
+    check(code == 0, f"bom node exits 0 on SIGINT (exit {code})")
+
+    # Bad input: logged (one line naming the topic/field) and counted in the exit report.
+    for key in (
+        "/segmented_points: malformed PointCloud2",
+        "/applied_wrench.wrench: non-finite wrench",
+        "/segmented_points.header.frame_id: unknown frame",
+    ):
+        logged = any(key in line and "WARN" in line for line in node_log.splitlines())
+        counted = any(line.strip().startswith(key + ": ") for line in node_log.splitlines())
+        check(logged and counted, f"bad input '{key}' logged and counted")
+
+    check(len(models) > 0, f"ObjectModel received ({len(models)})")
+    if not models:
+        print(node_log[-3000:])
+        return 1
+    last = models[-1]
+    want = {j["child"]: j for j in replay["model"]["joints"]}
+    got = {j.child: j for j in last.joints}
+    check(sorted(got) == sorted(want), f"same parts: node {sorted(got)} replay {sorted(want)}")
+    check(last.num_windows == len(replay["windows"]), f"windows: node {last.num_windows} replay {len(replay['windows'])}")
+    check(last.mode == replay["mode"], f"mode: node {last.mode} replay {replay['mode']}")
+    for child in sorted(set(got) & set(want)):
+        g, w = got[child], want[child]
+        w_type = max(w["type_probs"], key=w["type_probs"].get)
+        check(g.most_probable_type == w_type, f"part {child}: type node {g.most_probable_type} replay {w_type}")
+        check(g.parent == w["parent"], f"part {child}: parent node {g.parent} replay {w['parent']}")
+        if w.get("axis") and g.most_probable_type != "rigid":
+            a = [g.axis_direction.x, g.axis_direction.y, g.axis_direction.z]
+            b = w["axis"]["direction"]
+            cos = min(1.0, abs(sum(x * y for x, y in zip(a, b))))
+            angle = math.degrees(math.acos(cos))
+            spread = 3.0 * max(g.axis_direction_sd_deg, w["axis"]["direction_sd_deg"], 0.5 / 3.0)
+            check(angle <= spread, f"part {child}: axes {angle:.2f} deg apart (spread {spread:.2f} deg)")
+            if w["axis"].get("point") is not None and g.has_axis_point:
+                p, q, d = [g.axis_point.x, g.axis_point.y, g.axis_point.z], w["axis"]["point"], b
+                diff = [x - y for x, y in zip(p, q)]
+                along = sum(x * y for x, y in zip(diff, d))
+                off = math.sqrt(max(0.0, sum(x * x for x in diff) - along * along))
+                tol = 3.0 * max(g.axis_point_sd_m, w["axis"]["point_sd_m"], 0.002)
+                check(off <= tol, f"part {child}: axis lines {off * 1000:.1f} mm apart (spread {tol * 1000:.1f} mm)")
+
+    check(len(poses) > 0, f"PoseArray received ({len(poses)})")
+    n_parts = len(last.part_labels)
+    check(all(len(p.poses) == n_parts and p.header.frame_id == "world" for p in poses), f"every PoseArray has {n_parts} poses in 'world'")
+    print(node_log[-1500:])
+    print("interop: " + ("PASS" if not failures else f"{len(failures)} check(s) failed"))
+    return 0 if not failures else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
