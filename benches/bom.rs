@@ -109,10 +109,11 @@ fn inference(c: &mut Criterion) {
     g.finish();
 }
 
-/// Points on the surface of the box `lo`..`hi` (a deterministic lattice walk, `n` points).
-fn box_surface(lo: [f64; 3], hi: [f64; 3], n: usize) -> Vec<[f64; 3]> {
+/// `n` points on the surface of the box `lo`..`hi`, resampled per `frame` (a depth camera never
+/// sees the same surface points twice), with ±1 mm of deterministic noise.
+fn box_surface(lo: [f64; 3], hi: [f64; 3], n: usize, frame: usize) -> Vec<[f64; 3]> {
     let mut out = Vec::with_capacity(n);
-    let (mut u, mut v) = (0.0f64, 0.0f64);
+    let (mut u, mut v) = (0.137 * frame as f64 % 1.0, 0.291 * frame as f64 % 1.0);
     for i in 0..n {
         // Low-discrepancy (golden-ratio) coordinates on the six faces.
         u = (u + 0.618_033_988_75).fract();
@@ -123,7 +124,8 @@ fn box_surface(lo: [f64; 3], hi: [f64; 3], n: usize) -> Vec<[f64; 3]> {
         p[face / 2] = if face % 2 == 0 { lo[face / 2] } else { hi[face / 2] };
         p[a] = lo[a] + u * (hi[a] - lo[a]);
         p[b] = lo[b] + v * (hi[b] - lo[b]);
-        out.push(p);
+        let noise = |k: usize| ((((i * 7 + k * 13 + frame * 31) * 2_654_435_761) % 2001) as f64 / 1000.0 - 1.0) * 1e-3;
+        out.push([p[0] + noise(0), p[1] + noise(1), p[2] + noise(2)]);
     }
     out
 }
@@ -136,14 +138,14 @@ fn perception(c: &mut Criterion) {
     use bom::msgs::{Header, Time};
     use bom::pipeline::online::Online;
     let n = 5000;
-    let parts = [
-        box_surface([0.0, -0.4, 0.0], [0.4, 0.4, 0.8], n),
-        box_surface([0.42, -0.4, 0.02], [0.44, 0.0, 0.78], n),
-        box_surface([0.05, 0.02, 0.1], [0.41, 0.38, 0.3], n),
-        box_surface([0.0, -0.4, 0.85], [0.4, 0.4, 0.88], n),
-    ];
     let frames: Vec<_> = (0..90)
         .map(|k| {
+            let parts = [
+                box_surface([0.0, -0.4, 0.0], [0.4, 0.4, 0.8], n, k),
+                box_surface([0.42, -0.4, 0.02], [0.44, 0.0, 0.78], n, k),
+                box_surface([0.05, 0.02, 0.1], [0.41, 0.38, 0.3], n, k),
+                box_surface([0.0, -0.4, 0.85], [0.4, 0.4, 0.88], n, k),
+            ];
             let t = k as f64 / 30.0;
             let (a, slide) = (0.2 * t, 0.05 * t);
             let (ca, sa) = (a.cos(), a.sin());

@@ -466,7 +466,11 @@ pub fn render_report(r: &NodeReport) -> String {
     let med = |v: &[f64]| {
         let mut v = v.to_vec();
         v.sort_by(|a, b| a.total_cmp(b));
-        if v.is_empty() { f64::NAN } else { v[v.len() / 2] }
+        match v.len() {
+            0 => f64::NAN,
+            n if n % 2 == 1 => v[n / 2],
+            n => 0.5 * (v[n / 2 - 1] + v[n / 2]),
+        }
     };
     let per_cloud = r.perception_s.iter().sum::<f64>() / r.perception_s.len().max(1) as f64;
     let rate = if r.stream_s > 0.0 { r.clouds as f64 / r.stream_s } else { 0.0 };

@@ -259,29 +259,29 @@ pub fn icp(
             let Some((j, d2)) = model.nearest(&y, gate) else { continue };
             matched += 1;
             let m = model.points[j];
-            // d(y + w x y + u)/d(w, u) = [-[y]x, I].
-            let mut jp = nalgebra::Matrix3x6::<f64>::zeros();
-            jp.fixed_view_mut::<3, 3>(0, 0).copy_from(&(-skew(&y)));
-            jp.fixed_view_mut::<3, 3>(0, 3).copy_from(&Matrix3::identity());
+            let r = y - m;
             let wc = w / (1.0 + model.residual2(j, &y) / (spl * spl)) / (spl * spl);
+            // The weaker point-to-point term (edges fix a plane's position within it).
+            let mut wp = w * wpp / (1.0 + d2 / (spp * spp)) / (spp * spp);
             match model.normals[j] {
                 // Point to plane: d(n . (y' - m))/d(w, u) = [y x n, n].
                 Some(n) => {
                     let yn = y.cross(&n);
-                    let jr = Vector6::new(yn.x, yn.y, yn.z, n.x, n.y, n.z);
-                    a += jr * jr.transpose() * wc;
-                    b += jr * ((y - m).dot(&n) * wc);
+                    let jr = [yn.x, yn.y, yn.z, n.x, n.y, n.z];
+                    let e = r.dot(&n) * wc;
+                    // Rank-one update by hand: nalgebra's generic outer product is the hot spot.
+                    for i in 0..6 {
+                        let wi = jr[i] * wc;
+                        for j in 0..6 {
+                            a[(i, j)] += wi * jr[j];
+                        }
+                        b[i] += jr[i] * e;
+                    }
                 }
                 // No plane here: the full distance at the plane's scale.
-                None => {
-                    a += jp.transpose() * jp * wc;
-                    b += jp.transpose() * (y - m) * wc;
-                }
+                None => wp += wc,
             }
-            // The weaker point-to-point term (edges fix a plane's position within it).
-            let wp = w * wpp / (1.0 + d2 / (spp * spp)) / (spp * spp);
-            a += jp.transpose() * jp * wp;
-            b += jp.transpose() * (y - m) * wp;
+            add_point_to_point(&mut a, &mut b, &y, &r, wp);
         }
         if matched < cfg.min_points.max(6) {
             return None;
@@ -299,6 +299,28 @@ pub fn icp(
         }
     }
     last.map(|a| (pose, a))
+}
+
+/// Add `wp` times the point-to-point term of one match to the normal equations: with the
+/// Jacobian `J = d(y + w x y + u)/d(w, u) = [-[y]x, I]`, `JᵀJ = [[|y|²I - yyᵀ, [y]x], [-[y]x, I]]`
+/// and `Jᵀr = [y x r, r]` (closed forms: this runs for every point of every ICP iteration).
+fn add_point_to_point(a: &mut Matrix6<f64>, b: &mut Vector6<f64>, y: &Vector3<f64>, r: &Vector3<f64>, wp: f64) {
+    let yy = y.norm_squared();
+    let s = skew(y);
+    for i in 0..3 {
+        for j in 0..3 {
+            let d = if i == j { yy } else { 0.0 };
+            a[(i, j)] += wp * (d - y[i] * y[j]);
+            a[(i, j + 3)] += wp * s[(i, j)];
+            a[(i + 3, j)] -= wp * s[(i, j)];
+        }
+        a[(i + 3, i + 3)] += wp;
+    }
+    let yr = y.cross(r);
+    for i in 0..3 {
+        b[i] += wp * yr[i];
+        b[i + 3] += wp * r[i];
+    }
 }
 
 /// Robust noise scale of a fit: 1.4826 x the median absolute point-to-plane distance of the points
@@ -447,6 +469,18 @@ fn icp_information(model: &PartModel, frame: &FramePoints<'_>, pose: &Isometry3<
 mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
+
+    #[test]
+    fn closed_form_point_to_point_term_is_jt_j() {
+        let (y, r, wp) = (Vector3::new(0.3, -0.7, 1.1), Vector3::new(0.01, 0.02, -0.03), 2.5);
+        let mut jp = nalgebra::Matrix3x6::<f64>::zeros();
+        jp.fixed_view_mut::<3, 3>(0, 0).copy_from(&(-skew(&y)));
+        jp.fixed_view_mut::<3, 3>(0, 3).copy_from(&Matrix3::identity());
+        let (mut a, mut b) = (Matrix6::zeros(), Vector6::zeros());
+        add_point_to_point(&mut a, &mut b, &y, &r, wp);
+        assert!((a - jp.transpose() * jp * wp).norm() < 1e-12, "{a}");
+        assert!((b - jp.transpose() * r * wp).norm() < 1e-12, "{b}");
+    }
 
     /// Points on the surface of a box: a sparse random sample per frame.
     fn box_surface(rng: &mut impl Rng, n: usize, size: Vector3<f64>) -> Vec<Vector3<f64>> {

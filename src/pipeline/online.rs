@@ -42,6 +42,8 @@ pub const TF_WAIT_MAX_S: f64 = 3.0;
 pub const MAX_HELD: usize = 4096;
 /// Registered frames per part kept for the refine pass when a window closes (30 s at 30 Hz).
 pub const REFINE_FRAMES: usize = 900;
+/// Least stream time between two searches for closed windows \[s\] (wrenches come at up to 1 kHz).
+pub const CLOSE_CHECK_S: f64 = 0.02;
 /// Transforms kept in the buffer, in stream time \[s\] (tf2's default cache is 10 s).
 pub const TF_CACHE_S: f64 = 30.0;
 
@@ -102,6 +104,12 @@ pub struct Online {
     tf_clock: f64,
     first_cloud: Option<f64>,
     last_cloud_stamp: f64,
+    /// Data before this stamp lie in no window, closed or open \[s\] (a quiet stretch).
+    quiet_until: f64,
+    /// Stream time of the last search for a quiet stretch \[s\].
+    quiet_checked: f64,
+    /// Stream time of the last search for closed windows \[s\].
+    close_checked: f64,
     /// Bad input, counted (contract: never silently dropped).
     pub diag: Diagnostics,
 }
@@ -125,6 +133,9 @@ impl Online {
             tf_clock: f64::NEG_INFINITY,
             first_cloud: None,
             last_cloud_stamp: f64::NEG_INFINITY,
+            quiet_until: f64::NEG_INFINITY,
+            quiet_checked: f64::NEG_INFINITY,
+            close_checked: f64::NEG_INFINITY,
             diag: Diagnostics::default(),
         }
     }
@@ -303,14 +314,26 @@ impl Online {
 
     /// Start of the data not yet in a closed window.
     fn tail_start(&self) -> f64 {
-        self.closed.last().map(|w| w.end).or(self.first_cloud).unwrap_or(f64::NEG_INFINITY)
+        self.closed.last().map(|w| w.end).or(self.first_cloud).unwrap_or(f64::NEG_INFINITY).max(self.quiet_until)
+    }
+
+    /// Stream time up to which every input has arrived \[s\].
+    fn now(&self) -> f64 {
+        let t_max = self.last_cloud_stamp;
+        if self.mode() == "dynamic" {
+            self.wrenches.last().map_or(t_max, |w| w.stamp.min(t_max))
+        } else {
+            t_max
+        }
     }
 
     /// Windows found in the data after the last closed window; with `at_end`, the open one is
     /// closed at the end of the data (as replay closes it at the end of a bag).
     fn candidate_windows(&self, at_end: bool) -> Vec<Window> {
-        let Some(first) = self.first_cloud else { return Vec::new() };
-        let t_min = self.closed.last().map(|w| w.end).unwrap_or(first);
+        if self.first_cloud.is_none() {
+            return Vec::new();
+        }
+        let t_min = self.tail_start();
         let t_max = self.last_cloud_stamp;
         let ws = if self.mode() == "dynamic" {
             let from = self.wrenches.partition_point(|w| w.stamp <= t_min);
@@ -326,11 +349,7 @@ impl Online {
         };
         let wc = &self.cfg.windows;
         // Nothing after `now` can extend or merge into a window that ends this long before it.
-        let now = if self.mode() == "dynamic" {
-            self.wrenches.last().map_or(t_max, |w| w.stamp.min(t_max))
-        } else {
-            t_max
-        };
+        let now = self.now();
         ws.into_iter()
             .filter(|w| w.start >= t_min && w.end > w.start)
             .filter(|w| at_end || (w.end < t_max && w.end + wc.merge_gap_s + wc.margin_before_s < now))
@@ -338,8 +357,14 @@ impl Online {
     }
 
     /// Close the windows that nothing later can change; returns how many closed. Call after
-    /// each message (cheap: only the data after the last closed window are searched).
+    /// each message: it searches at most every [`CLOSE_CHECK_S`] of stream time, and only the
+    /// data after the last closed window or quiet stretch.
     pub fn close_windows(&mut self) -> usize {
+        let now = self.now();
+        if now < self.close_checked + CLOSE_CHECK_S {
+            return 0;
+        }
+        self.close_checked = now;
         self.close(false)
     }
 
@@ -365,6 +390,7 @@ impl Online {
     fn close(&mut self, at_end: bool) -> usize {
         let mut new = self.candidate_windows(at_end);
         if new.is_empty() {
+            self.mark_quiet();
             return 0;
         }
         let dynamic = self.mode() == "dynamic";
@@ -378,6 +404,27 @@ impl Online {
         self.perception.refine(&mut self.tracks);
         self.prune();
         n
+    }
+
+    /// Once a second of stream time: when the data after the last closed window hold no window at
+    /// all, not even an open one, everything but the last few seconds is a quiet stretch that no
+    /// window can reach; forget it, so that the search for windows stays short however long the
+    /// robot waits between pushes.
+    fn mark_quiet(&mut self) {
+        let now = self.now();
+        if !(now - self.quiet_checked >= 1.0) {
+            return;
+        }
+        self.quiet_checked = now;
+        if !self.candidate_windows(true).is_empty() {
+            return;
+        }
+        let wc = &self.cfg.windows;
+        let reach = wc.margin_before_s + wc.merge_gap_s + wc.hold_s + wc.speed_span_s + 1.0;
+        if now - reach > self.quiet_until + 5.0 {
+            self.quiet_until = now - reach;
+            self.prune();
+        }
     }
 
     /// Drop what no later window or update can use: wrenches, observations and contacts between
@@ -411,5 +458,48 @@ impl Job {
     pub fn fit(&self, cfg: &Config, warm: Option<&GuideState>) -> Option<svi::Fitted> {
         let ev = Evidence::new(&self.tracks, &self.geometry, &self.windows, &self.wrenches, &[], &super::grid(cfg));
         svi::fit(&ev, &cfg.model, &cfg.inference, warm)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::input::pointcloud::encode_xyzl;
+    use crate::msgs::{Time, Vector3, Wrench};
+
+    fn wrench(t: f64, fx: f64) -> WrenchStamped {
+        WrenchStamped {
+            header: Header { stamp: Time::from_seconds(t), frame_id: "world".into() },
+            wrench: Wrench { force: Vector3 { x: fx, y: 0.0, z: 0.0 }, torque: Vector3::default() },
+        }
+    }
+
+    fn cloud(t: f64) -> PointCloud2 {
+        let pts: Vec<[f64; 3]> = (0..27).map(|i| [(i % 3) as f64 * 0.02, (i / 3 % 3) as f64 * 0.02, (i / 9) as f64 * 0.02]).collect();
+        encode_xyzl(Header { stamp: Time::from_seconds(t), frame_id: "world".into() }, &pts, &[1; 27])
+    }
+
+    #[test]
+    fn a_long_quiet_stream_keeps_memory_bounded_and_a_push_still_closes_a_window() {
+        let mut on = Online::new(&Config::new());
+        let push = |t: f64| if (100.0..101.0).contains(&t) { 5.0 } else { 0.0 };
+        for k in 0..(110 * 1000) {
+            let t = k as f64 * 1e-3;
+            if k % 33 == 0 {
+                on.cloud("/segmented_points", &cloud(t));
+            }
+            on.wrench("/applied_wrench", &wrench(t, push(t)));
+            on.close_windows();
+            if k == 99_000 {
+                // 99 s of no force: only the last seconds are kept.
+                assert!(on.wrenches.len() < 10_000, "{} wrenches kept", on.wrenches.len());
+                assert!(on.tracks[&1].len() < 300, "{} observations kept", on.tracks[&1].len());
+            }
+        }
+        assert_eq!(on.windows().len(), 1, "{:?}", on.windows());
+        let w = &on.windows()[0];
+        assert!((w.start - (100.0 - 0.3)).abs() < 0.01 && (w.end - (101.0 + 0.5)).abs() < 0.01, "{w:?}");
+        assert_eq!(w.pushed_part, Some(1));
+        assert_eq!(on.diag.total(), 0);
     }
 }
