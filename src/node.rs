@@ -197,7 +197,10 @@ struct Publishers {
     criticism: Publisher<ModelCriticism>,
 }
 
-fn publish_update(p: &Publishers, u: &Update, cfg: &Config) {
+/// Publish an update's model and markers and record its delay in the report.
+fn publish_update(p: &Publishers, u: &Update, cfg: &Config, report: &mut NodeReport) {
+    report.updates += 1;
+    report.latency_s.push(u.closed_at.elapsed().as_secs_f64());
     let stamp = Time::from_seconds(u.job.windows.last().map(|w| w.end).unwrap_or(0.0));
     let model = messages::object_model(&u.posterior, stamp, &cfg.fixed_frame, u.job.mode, u.job.windows.len() as u32);
     if let Err(e) = p.model.publish(model) {
@@ -397,9 +400,7 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
                 Err(e) => on.diag.warn(&tf_static_topic, "undecodable message", &format!("{e:?}; message skipped")),
             },
             Some(u) = done_rx.recv() => {
-                publish_update(&pubs, &u, &cfg);
-                report.updates += 1;
-                report.latency_s.push(u.closed_at.elapsed().as_secs_f64());
+                publish_update(&pubs, &u, &cfg, &mut report);
                 tracing::info!(
                     "posterior after {} window(s) published {:.2} s after the window closed (ELBO {:.1})",
                     u.job.windows.len(), u.closed_at.elapsed().as_secs_f64(), u.posterior.elbo
@@ -425,9 +426,7 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
         }
         tokio::select! {
             Some(u) = done_rx.recv() => {
-                publish_update(&pubs, &u, &cfg);
-                report.updates += 1;
-                report.latency_s.push(u.closed_at.elapsed().as_secs_f64());
+                publish_update(&pubs, &u, &cfg, &mut report);
                 tracing::info!("last posterior ({} window(s)) published", u.job.windows.len());
             }
             _ = tokio::time::sleep(Duration::from_millis(50)) => {}

@@ -277,7 +277,7 @@ pub fn decode_recording(bags: &[Bag], topics: &Topics, fixed_frame: &str, diag: 
         }
     }
     let mut rec = Recording::default();
-    let mut last_stamp: HashMap<&str, f64> = HashMap::new();
+    let mut last_stamp: HashMap<String, f64> = HashMap::new();
     for bag in bags {
         for m in &bag.messages {
             if m.topic == topics.points {
@@ -303,25 +303,28 @@ pub fn decode_recording(bags: &[Bag], topics: &Topics, fixed_frame: &str, diag: 
     rec
 }
 
-fn check_monotonic<'a>(last: &mut HashMap<&'a str, f64>, topic: &'a str, stamp: f64, diag: &mut Diagnostics) -> bool {
-    if let Some(&prev) = last.get(topic) {
-        if stamp < prev {
+/// Whether `stamp` is not earlier than the previous header stamp on `topic` (then it becomes the
+/// previous one); a stamp going backwards is reported and the message is to be skipped.
+pub fn check_monotonic(last: &mut HashMap<String, f64>, topic: &str, stamp: f64, diag: &mut Diagnostics) -> bool {
+    match last.get_mut(topic) {
+        Some(prev) if stamp < *prev => {
             diag.warn(topic, "time went backwards", &format!("header.stamp {stamp:.6} s after {prev:.6} s; message skipped"));
-            return false;
+            false
+        }
+        Some(prev) => {
+            *prev = stamp;
+            true
+        }
+        None => {
+            last.insert(topic.to_string(), stamp);
+            true
         }
     }
-    last.insert(topic, stamp);
-    true
 }
 
-/// Decode one cloud and express its labelled points in the fixed frame.
-pub fn cloud_in_fixed_frame(
-    topic: &str,
-    cloud: &PointCloud2,
-    tf: &TfBuffer,
-    fixed_frame: &str,
-    diag: &mut Diagnostics,
-) -> Option<CloudFrame> {
+/// Decode the labelled points of a cloud (in its own frame), reporting a malformed cloud (then
+/// `None`), NaN/Inf points and non-integer labels (those points are skipped).
+pub fn decode_cloud(topic: &str, cloud: &PointCloud2, diag: &mut Diagnostics) -> Option<LabeledPoints> {
     let lp = match pointcloud::decode(cloud) {
         Ok(lp) => lp,
         Err(e) => {
@@ -335,6 +338,46 @@ pub fn cloud_in_fixed_frame(
     if lp.bad_labels > 0 {
         diag.warn(&format!("{topic}.label"), "non-integer label", &format!("{} points skipped", lp.bad_labels));
     }
+    Some(lp)
+}
+
+/// A decoded cloud in the fixed frame: `iso` maps the cloud's frame into it; `stamp` in seconds.
+pub fn cloud_frame(lp: LabeledPoints, iso: &nalgebra::Isometry3<f64>, stamp: f64) -> CloudFrame {
+    let points = lp.points.iter().map(|p| iso * Point3::new(p[0], p[1], p[2])).collect();
+    CloudFrame { stamp, points, labels: lp.labels }
+}
+
+/// Whether every force and torque component is finite; reports the wrench when not.
+pub fn wrench_is_finite(topic: &str, w: &WrenchStamped, diag: &mut Diagnostics) -> bool {
+    let (f, t) = (w.wrench.force, w.wrench.torque);
+    let ok = [f.x, f.y, f.z, t.x, t.y, t.z].iter().all(|x| x.is_finite());
+    if !ok {
+        diag.warn(&format!("{topic}.wrench"), "non-finite wrench", "NaN or Inf in force/torque; message skipped");
+    }
+    ok
+}
+
+/// A wrench in the fixed frame: `iso` maps the wrench's frame into it; force and torque rotated,
+/// the point of application at the frame's origin.
+pub fn wrench_sample(w: &WrenchStamped, iso: &nalgebra::Isometry3<f64>) -> WrenchSample {
+    let (f, t) = (w.wrench.force, w.wrench.torque);
+    WrenchSample {
+        stamp: w.header.stamp.seconds(),
+        point: iso * Point3::origin(),
+        force: iso.rotation * Vector3::new(f.x, f.y, f.z),
+        torque: iso.rotation * Vector3::new(t.x, t.y, t.z),
+    }
+}
+
+/// Decode one cloud and express its labelled points in the fixed frame.
+pub fn cloud_in_fixed_frame(
+    topic: &str,
+    cloud: &PointCloud2,
+    tf: &TfBuffer,
+    fixed_frame: &str,
+    diag: &mut Diagnostics,
+) -> Option<CloudFrame> {
+    let lp = decode_cloud(topic, cloud, diag)?;
     let iso = match tf.lookup(fixed_frame, &cloud.header.frame_id, cloud.header.stamp) {
         Ok(iso) => iso,
         Err(e) => {
@@ -342,8 +385,7 @@ pub fn cloud_in_fixed_frame(
             return None;
         }
     };
-    let points = lp.points.iter().map(|p| iso * Point3::new(p[0], p[1], p[2])).collect();
-    Some(CloudFrame { stamp: cloud.header.stamp.seconds(), points, labels: lp.labels })
+    Some(cloud_frame(lp, &iso, cloud.header.stamp.seconds()))
 }
 
 /// Express one wrench in the fixed frame: the force and torque rotated, the point of application
@@ -355,10 +397,7 @@ pub fn wrench_in_fixed_frame(
     fixed_frame: &str,
     diag: &mut Diagnostics,
 ) -> Option<WrenchSample> {
-    let (f, t) = (w.wrench.force, w.wrench.torque);
-    let v = [f.x, f.y, f.z, t.x, t.y, t.z];
-    if !v.iter().all(|x| x.is_finite()) {
-        diag.warn(&format!("{topic}.wrench"), "non-finite wrench", "NaN or Inf in force/torque; message skipped");
+    if !wrench_is_finite(topic, w, diag) {
         return None;
     }
     let iso = match tf.lookup(fixed_frame, &w.header.frame_id, w.header.stamp) {
@@ -368,10 +407,5 @@ pub fn wrench_in_fixed_frame(
             return None;
         }
     };
-    Some(WrenchSample {
-        stamp: w.header.stamp.seconds(),
-        point: iso * Point3::origin(),
-        force: iso.rotation * Vector3::new(f.x, f.y, f.z),
-        torque: iso.rotation * Vector3::new(t.x, t.y, t.z),
-    })
+    Some(wrench_sample(w, &iso))
 }

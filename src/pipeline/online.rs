@@ -25,9 +25,8 @@ use crate::diagnostics::Diagnostics;
 use crate::inference::guide::GuideState;
 use crate::inference::svi;
 use crate::model::likelihood::Evidence;
-use crate::input::pointcloud::{self, LabeledPoints};
 use crate::input::tf::TfBuffer;
-use crate::input::{CloudFrame, WrenchSample};
+use crate::input::{self, CloudFrame, LabeledPoints, WrenchSample};
 use crate::msgs::{Header, PointCloud2, TFMessage, WrenchStamped};
 use crate::perception::{self, PartGeometry, PartObservation, PartTracks, Perception};
 use crate::windows::{self, Window};
@@ -65,6 +64,12 @@ enum Held {
 }
 
 impl Held {
+    fn topic(&self) -> &str {
+        match self {
+            Held::Cloud { topic, .. } | Held::Wrench { topic, .. } => topic,
+        }
+    }
+
     fn stamp(&self) -> f64 {
         match self {
             Held::Cloud { header, .. } => header.stamp.seconds(),
@@ -179,19 +184,7 @@ impl Online {
     /// ready (usually this one; none while it waits for its transform): its stamp \[s\] and the
     /// parts observed.
     pub fn cloud(&mut self, topic: &str, cloud: &PointCloud2) -> Vec<(f64, Vec<(u32, PartObservation)>)> {
-        let points = match pointcloud::decode(cloud) {
-            Ok(lp) => lp,
-            Err(e) => {
-                self.diag.warn(topic, "malformed PointCloud2", &format!("{e}; cloud skipped"));
-                return Vec::new();
-            }
-        };
-        if points.nonfinite > 0 {
-            self.diag.warn(topic, "non-finite points", &format!("{} NaN/Inf points skipped", points.nonfinite));
-        }
-        if points.bad_labels > 0 {
-            self.diag.warn(&format!("{topic}.label"), "non-integer label", &format!("{} points skipped", points.bad_labels));
-        }
+        let Some(points) = input::decode_cloud(topic, cloud, &mut self.diag) else { return Vec::new() };
         self.clock = self.clock.max(cloud.header.stamp.seconds());
         self.held.push_back(Held::Cloud { topic: topic.into(), header: cloud.header.clone(), points });
         self.release()
@@ -199,9 +192,7 @@ impl Online {
 
     /// One `geometry_msgs/WrenchStamped`. Returns the perception results of clouds it released.
     pub fn wrench(&mut self, topic: &str, msg: &WrenchStamped) -> Vec<(f64, Vec<(u32, PartObservation)>)> {
-        let (f, t) = (msg.wrench.force, msg.wrench.torque);
-        if ![f.x, f.y, f.z, t.x, t.y, t.z].iter().all(|x| x.is_finite()) {
-            self.diag.warn(&format!("{topic}.wrench"), "non-finite wrench", "NaN or Inf in force/torque; message skipped");
+        if !input::wrench_is_finite(topic, msg, &mut self.diag) {
             return Vec::new();
         }
         self.clock = self.clock.max(msg.header.stamp.seconds());
@@ -215,10 +206,7 @@ impl Online {
         let mut out = Vec::new();
         while self.held.len() > MAX_HELD {
             let h = self.held.pop_front().expect("non-empty");
-            let topic = match &h {
-                Held::Cloud { topic, .. } | Held::Wrench { topic, .. } => topic.clone(),
-            };
-            self.diag.warn(&topic, "waiting for transform", &format!("more than {MAX_HELD} messages held; oldest (t={:.3} s) dropped", h.stamp()));
+            self.diag.warn(h.topic(), "waiting for transform", &format!("more than {MAX_HELD} messages held; oldest (t={:.3} s) dropped", h.stamp()));
         }
         while let Some(h) = self.held.front() {
             let (frame, stamp) = match h {
@@ -231,52 +219,28 @@ impl Online {
                     match h {
                         Held::Cloud { topic, header, points } => {
                             let t = header.stamp.seconds();
-                            if self.monotonic(&topic, t) {
-                                let c = CloudFrame {
-                                    stamp: t,
-                                    points: points.points.iter().map(|p| iso * Point3::new(p[0], p[1], p[2])).collect(),
-                                    labels: points.labels,
-                                };
+                            if input::check_monotonic(&mut self.last_stamp, &topic, t, &mut self.diag) {
+                                let c = input::cloud_frame(points, &iso, t);
                                 out.push((t, self.observe(c)));
                             }
                         }
                         Held::Wrench { topic, msg } => {
                             let t = msg.header.stamp.seconds();
-                            if self.monotonic(&topic, t) {
-                                let (f, q) = (msg.wrench.force, msg.wrench.torque);
-                                self.add_wrench(WrenchSample {
-                                    stamp: t,
-                                    point: iso * Point3::origin(),
-                                    force: iso.rotation * nalgebra::Vector3::new(f.x, f.y, f.z),
-                                    torque: iso.rotation * nalgebra::Vector3::new(q.x, q.y, q.z),
-                                });
+                            if input::check_monotonic(&mut self.last_stamp, &topic, t, &mut self.diag) {
+                                self.add_wrench(input::wrench_sample(&msg, &iso));
                             }
                         }
                     }
                 }
                 Err(e) if self.tf_clock - stamp.seconds() > TF_WAIT_S || self.clock - stamp.seconds() > TF_WAIT_MAX_S => {
                     let h = self.held.pop_front().expect("non-empty");
-                    let what = match h {
-                        Held::Cloud { topic, .. } => (topic, "cloud"),
-                        Held::Wrench { topic, .. } => (topic, "wrench"),
-                    };
-                    self.diag.warn(&format!("{}.header.frame_id", what.0), "unknown frame", &format!("{e}; {} skipped", what.1));
+                    let what = if matches!(h, Held::Cloud { .. }) { "cloud" } else { "wrench" };
+                    self.diag.warn(&format!("{}.header.frame_id", h.topic()), "unknown frame", &format!("{e}; {what} skipped"));
                 }
                 Err(_) => break,
             }
         }
         out
-    }
-
-    fn monotonic(&mut self, topic: &str, stamp: f64) -> bool {
-        if let Some(&prev) = self.last_stamp.get(topic) {
-            if stamp < prev {
-                self.diag.warn(topic, "time went backwards", &format!("header.stamp {stamp:.6} s after {prev:.6} s; message skipped"));
-                return false;
-            }
-        }
-        self.last_stamp.insert(topic.into(), stamp);
-        true
     }
 
     fn observe(&mut self, cloud: CloudFrame) -> Vec<(u32, PartObservation)> {

@@ -28,10 +28,10 @@ import time
 
 import rclpy
 from rclpy.executors import MultiThreadedExecutor
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from mcap.reader import make_reader
 
 from bom_msgs.msg import ObjectModel
+from rosutil import qos, stamp
 from geometry_msgs.msg import PoseArray, WrenchStamped
 from sensor_msgs.msg import PointCloud2, PointField
 from tf2_msgs.msg import TFMessage
@@ -51,15 +51,6 @@ def check(ok, what):
         failures.append(what)
 
 
-def qos(reliable=True, transient=False, depth=10):
-    return QoSProfile(
-        history=HistoryPolicy.KEEP_LAST,
-        depth=depth,
-        reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
-        durability=DurabilityPolicy.TRANSIENT_LOCAL if transient else DurabilityPolicy.VOLATILE,
-    )
-
-
 def read_bag(path):
     """(log_time_ns, topic, schema, cdr bytes) in log-time order."""
     out = []
@@ -70,25 +61,19 @@ def read_bag(path):
     return out
 
 
-def stamp_of(sec):
-    from builtin_interfaces.msg import Time
-
-    return Time(sec=int(sec), nanosec=int(round((sec - int(sec)) * 1e9)))
-
-
 def bad_messages(t):
     """The three bad inputs of issue 5, stamped `t` (before the bag starts)."""
     fields = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1) for i, n in enumerate("xyz")]
     fields.append(PointField(name="label", offset=12, datatype=PointField.UINT32, count=1))
     malformed = PointCloud2(height=1, width=100, fields=fields, is_bigendian=False, point_step=16, row_step=1600, data=bytes(160), is_dense=True)
-    malformed.header.stamp = stamp_of(t)
+    malformed.header.stamp = stamp(t)
     malformed.header.frame_id = "world"
     nan = WrenchStamped()
-    nan.header.stamp = stamp_of(t)
+    nan.header.stamp = stamp(t)
     nan.header.frame_id = "world"
     nan.wrench.force.x = math.nan
     unknown = PointCloud2(height=1, width=1, fields=fields, is_bigendian=False, point_step=16, row_step=16, data=bytes(16), is_dense=True)
-    unknown.header.stamp = stamp_of(t)
+    unknown.header.stamp = stamp(t)
     unknown.header.frame_id = "nowhere"
     return malformed, nan, unknown
 

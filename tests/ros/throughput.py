@@ -21,21 +21,12 @@ import time
 import numpy as np
 import rclpy
 from rclpy.executors import MultiThreadedExecutor
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from bom_msgs.msg import ObjectModel
+from rosutil import qos, stamp
 from geometry_msgs.msg import TransformStamped, WrenchStamped
 from sensor_msgs.msg import PointCloud2, PointField
 from tf2_msgs.msg import TFMessage
-
-
-def qos(reliable=True, transient=False, depth=10):
-    return QoSProfile(
-        history=HistoryPolicy.KEEP_LAST,
-        depth=depth,
-        reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
-        durability=DurabilityPolicy.TRANSIENT_LOCAL if transient else DurabilityPolicy.VOLATILE,
-    )
 
 
 def box_surface(rng, lo, hi, n):
@@ -50,12 +41,6 @@ def box_surface(rng, lo, hi, n):
         m = face == a
         pts[m, a] = np.where(side[m], lo[a], hi[a])
     return pts
-
-
-def stamp(t):
-    from builtin_interfaces.msg import Time
-
-    return Time(sec=int(t), nanosec=int(round((t - int(t)) * 1e9)) % 1_000_000_000)
 
 
 def main():
