@@ -95,7 +95,7 @@ fn inference(c: &mut Criterion) {
     // window, from its recorded wrenches (the "3-part object after one window").
     let cab: PathBuf = "bags/mujoco/hingecabinet.mcap".into();
     let run3 = bom::pipeline::replay(std::slice::from_ref(&cab), &cfg).expect("bundled bag");
-    let springs = run3.ground_truth.as_ref().map(bom::pipeline::declared_springs).unwrap_or_default();
+    let springs = run3.ground_truth.as_ref().map(bom::pipeline::declared_effects).unwrap_or_default();
     let mut diag = bom::diagnostics::Diagnostics::default();
     let rec = bom::input::decode_recording(&[bom::input::read_bag(&cab, &mut diag).expect("bundled bag")], &cfg.topics, &cfg.fixed_frame, &mut diag);
     let ev3 = Evidence::new(&run3.tracks, &run3.geometry, &run3.windows[..1], &rec.wrenches, &springs, &bom::pipeline::grid(&cfg));

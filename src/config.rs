@@ -5,6 +5,7 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
+use crate::criticism::CriticismConfig;
 use crate::inference::svi::SviConfig;
 use crate::input::Topics;
 use crate::model::ModelConfig;
@@ -22,6 +23,7 @@ pub struct Config {
     pub windows: WindowConfig,
     pub model: ModelConfig,
     pub inference: SviConfig,
+    pub criticism: CriticismConfig,
 }
 
 impl Config {

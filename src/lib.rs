@@ -6,8 +6,9 @@
 //!
 //! Data flows one way, one module per stage:
 //! [`input`] (bags, topics) -> [`perception`] (clouds to part centres and poses) -> [`windows`]
-//! -> [`model`] (priors, tree sampler, kinematics, likelihood) -> [`inference`] (SVI) ->
-//! [`output`] (summary table, JSON, ROS messages, bags). [`pipeline`] wires the stages for
+//! -> [`model`] (priors, tree sampler, physics, effects, likelihood) -> [`inference`] (SVI) ->
+//! [`criticism`] (held-out residuals, missing effects) -> [`output`] (summary table, JSON, ROS
+//! messages, bags, plots). [`pipeline`] wires the stages for
 //! `bom replay`; [`import`] makes bags from articulation track logs.
 //!
 //! ```no_run
@@ -20,6 +21,7 @@
 //! ```
 
 pub mod config;
+pub mod criticism;
 pub mod diagnostics;
 pub mod eval;
 pub mod import;

@@ -42,6 +42,9 @@ enum Command {
         /// Print the wall time of every stage.
         #[arg(long)]
         timing: bool,
+        /// Write SVG figures of model criticism here (observed vs predicted, before and after).
+        #[arg(long)]
+        plot: Option<PathBuf>,
     },
     /// Replay, then the metrics of contract section 6 against the bags' bom_ground_truth.
     Eval {
@@ -209,7 +212,7 @@ fn main() -> ExitCode {
             }
             ExitCode::SUCCESS
         }
-        Command::Replay { input, json, out, timing } => {
+        Command::Replay { input, json, out, timing, plot } => {
             let (run, cfg) = match replay(&input) {
                 Ok(r) => r,
                 Err(code) => return code,
@@ -228,11 +231,20 @@ fn main() -> ExitCode {
                     return ExitCode::from(EXIT_ARGS);
                 }
             }
+            if let Some(dir) = plot {
+                match output::plot::write_criticism_plots(&run, &dir) {
+                    Ok(files) => eprintln!("wrote {} figure(s) to {}", files.len(), dir.display()),
+                    Err(e) => {
+                        eprintln!("error: {e}");
+                        return ExitCode::from(EXIT_ARGS);
+                    }
+                }
+            }
             if timing {
                 let t = &run.timing;
-                println!("timing [s]: read {:.3}  decode {:.3}  perception {:.3}  windows {:.3}  inference {:.3}  total {:.3}",
+                println!("timing [s]: read {:.3}  decode {:.3}  perception {:.3}  windows {:.3}  inference {:.3}  criticism {:.3}  total {:.3}",
                     t.read.as_secs_f64(), t.decode.as_secs_f64(), t.perception.as_secs_f64(), t.windows.as_secs_f64(),
-                    t.inference.as_secs_f64(), t.total.as_secs_f64());
+                    t.inference.as_secs_f64(), t.criticism.as_secs_f64(), t.total.as_secs_f64());
             }
             ExitCode::SUCCESS
         }

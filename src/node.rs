@@ -6,7 +6,9 @@
 //!   runs perception on every cloud, publishes predicted part poses at the cloud rate from the
 //!   current posterior, and closes windows;
 //! - the **worker** runs BOM-SVI (a blocking task) on the evidence of all windows closed so far and
-//!   hands the posterior back to be published.
+//!   hands the posterior back to be published at once; then model criticism, whose findings go
+//!   out on `/bom/model_criticism` (and, when it adopts an effect, the refitted posterior, and the
+//!   effect stays in the model for every later job).
 //!
 //! Queue policy (bounded, nothing dropped silently): the worker has one pending slot. A window
 //! closing while the worker is busy replaces the pending job by one holding every window so far,
@@ -176,9 +178,12 @@ impl Predictor {
 }
 
 /// One finished inference run.
+/// What the worker sends back: first the posterior of a job, then its model criticism (with the
+/// refit, when criticism adopted an effect).
 struct Update {
-    posterior: Posterior,
-    job: Job,
+    posterior: Option<Posterior>,
+    criticism: Option<crate::criticism::Criticism>,
+    job: Arc<Job>,
     closed_at: Instant,
 }
 
@@ -193,21 +198,35 @@ struct Publishers {
     model: Publisher<ObjectModel>,
     poses: Publisher<PoseArray>,
     markers: Publisher<MarkerArray>,
-    #[allow(dead_code)] // model criticism (issue 6) is published on it once it exists
     criticism: Publisher<ModelCriticism>,
 }
 
-/// Publish an update's model and markers and record its delay in the report.
+/// Publish what an update carries: the model and markers of a posterior (the first posterior of a
+/// job records its delay in the report), and model criticism when it has findings.
 fn publish_update(p: &Publishers, u: &Update, cfg: &Config, report: &mut NodeReport) {
-    report.updates += 1;
-    report.latency_s.push(u.closed_at.elapsed().as_secs_f64());
     let stamp = Time::from_seconds(u.job.windows.last().map(|w| w.end).unwrap_or(0.0));
-    let model = messages::object_model(&u.posterior, stamp, &cfg.fixed_frame, u.job.mode, u.job.windows.len() as u32);
-    if let Err(e) = p.model.publish(model) {
-        tracing::warn!("publishing the object model failed: {e:?}");
+    if let Some(posterior) = &u.posterior {
+        if u.criticism.is_none() {
+            report.updates += 1;
+            report.latency_s.push(u.closed_at.elapsed().as_secs_f64());
+        }
+        let model = messages::object_model(posterior, stamp, &cfg.fixed_frame, u.job.mode, u.job.windows.len() as u32);
+        if let Err(e) = p.model.publish(model) {
+            tracing::warn!("publishing the object model failed: {e:?}");
+        }
+        if let Err(e) = p.markers.publish(messages::markers(posterior, stamp, &cfg.fixed_frame)) {
+            tracing::warn!("publishing markers failed: {e:?}");
+        }
     }
-    if let Err(e) = p.markers.publish(messages::markers(&u.posterior, stamp, &cfg.fixed_frame)) {
-        tracing::warn!("publishing markers failed: {e:?}");
+    // Model criticism whenever it has something to say (the topic is latched: a late subscriber
+    // gets the last findings).
+    if let Some(c) = u.criticism.as_ref().filter(|c| !c.findings.is_empty()) {
+        for f in &c.findings {
+            tracing::info!("model criticism: {}", crate::output::table::finding_line(f));
+        }
+        if let Err(e) = p.criticism.publish(messages::model_criticism(&c.findings, stamp, &cfg.fixed_frame)) {
+            tracing::warn!("publishing model criticism failed: {e:?}");
+        }
     }
 }
 
@@ -282,6 +301,8 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
         let (slot, wake, cfg) = (slot.clone(), wake.clone(), cfg.clone());
         tokio::spawn(async move {
             let mut warm: Option<GuideState> = None;
+            // Effects model criticism adopted, kept for every later update.
+            let mut effects = crate::pipeline::Effects::default();
             loop {
                 let next = {
                     let mut s = slot.lock().expect("slot lock");
@@ -293,23 +314,42 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
                     wake.notified().await;
                     continue;
                 };
-                let (c, w) = (cfg.clone(), warm.take());
-                let res = tokio::task::spawn_blocking(move || {
-                    let fitted = job.fit(&c, w.as_ref());
-                    (job, fitted)
-                })
-                .await;
-                let update = match res {
-                    Ok((job, Some(f))) => {
-                        warm = Some(f.guide);
-                        Some(Update { posterior: f.posterior, job, closed_at })
-                    }
-                    Ok((_, None)) => {
+                // Stage 1: BOM-SVI; its posterior is published at once.
+                let job = Arc::new(job);
+                let (c, w, fx, j) = (cfg.clone(), warm.take(), effects.clone(), job.clone());
+                let fitted = match tokio::task::spawn_blocking(move || j.fit(&c, w.as_ref(), &fx)).await {
+                    Ok(Some(f)) => f,
+                    Ok(None) => {
                         tracing::warn!("inference: no part was observed inside a window; no posterior");
-                        None
+                        slot.lock().expect("slot lock").busy = false;
+                        continue;
                     }
                     Err(e) => {
                         tracing::error!("inference task failed: {e}");
+                        slot.lock().expect("slot lock").busy = false;
+                        continue;
+                    }
+                };
+                let first = Update { posterior: Some(fitted.1.posterior.clone()), criticism: None, job: job.clone(), closed_at };
+                if done_tx.send(first).await.is_err() {
+                    break;
+                }
+                // Stage 2: model criticism, and the refit when it adopts an effect.
+                let (c, mut fx, j) = (cfg.clone(), effects.clone(), job.clone());
+                let res = tokio::task::spawn_blocking(move || {
+                    let (criticism, refit) = j.criticise(&fitted.0, &fitted.1, &c, &mut fx);
+                    (fitted.1, criticism, refit, fx)
+                })
+                .await;
+                let update = match res {
+                    Ok((fitted, criticism, refit, fx)) => {
+                        effects = fx;
+                        let posterior = refit.as_ref().map(|r| r.posterior.clone());
+                        warm = Some(refit.map_or(fitted.guide, |r| r.guide));
+                        Some(Update { posterior, criticism: Some(criticism), job, closed_at })
+                    }
+                    Err(e) => {
+                        tracing::error!("model criticism task failed: {e}");
                         None
                     }
                 };
@@ -401,11 +441,13 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
             },
             Some(u) = done_rx.recv() => {
                 publish_update(&pubs, &u, &cfg, &mut report);
-                tracing::info!(
-                    "posterior after {} window(s) published {:.2} s after the window closed (ELBO {:.1})",
-                    u.job.windows.len(), u.closed_at.elapsed().as_secs_f64(), u.posterior.elbo
-                );
-                predictor = Some(Predictor::new(u.posterior, &u.job));
+                if let Some(posterior) = u.posterior {
+                    tracing::info!(
+                        "posterior after {} window(s) published {:.2} s after the window closed (ELBO {:.1})",
+                        u.job.windows.len(), u.closed_at.elapsed().as_secs_f64(), posterior.elbo
+                    );
+                    predictor = Some(Predictor::new(posterior, &u.job));
+                }
             }
             _ = tokio::signal::ctrl_c() => { tracing::info!("SIGINT: finishing"); break; }
             _ = sigterm.recv() => { tracing::info!("SIGTERM: finishing"); break; }
@@ -427,7 +469,9 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
         tokio::select! {
             Some(u) = done_rx.recv() => {
                 publish_update(&pubs, &u, &cfg, &mut report);
-                tracing::info!("last posterior ({} window(s)) published", u.job.windows.len());
+                if u.posterior.is_some() {
+                    tracing::info!("last posterior ({} window(s)) published", u.job.windows.len());
+                }
             }
             _ = tokio::time::sleep(Duration::from_millis(50)) => {}
             _ = tokio::signal::ctrl_c() => { tracing::warn!("second SIGINT: exiting without the last model"); break; }

@@ -2,7 +2,8 @@
 
 usage: python tests/check_rosbags.py OUT.mcap INPUT.mcap...
 OUT.mcap is an output bag of `bom replay --out`; every message on every topic must decode with
-the definitions stored in the file, and the object model must hold at least one joint.
+the definitions stored in the file, and the object model must hold at least one joint (and model
+criticism, where present, named findings).
 """
 import sys
 from pathlib import Path
@@ -24,6 +25,11 @@ def decode_all(path):
                 assert j.most_probable_type in ("rigid", "prismatic", "revolute")
             if conn.topic == "/bom/markers":
                 assert msg.markers, "empty MarkerArray"
+            if conn.topic == "/bom/model_criticism":
+                assert msg.findings, "ModelCriticism without findings"
+                for f in msg.findings:
+                    assert f.effect, "EffectFinding without an effect name"
+                    assert len(f.param_names) == len(f.param_values), f.effect
     return counts
 
 

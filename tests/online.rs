@@ -54,7 +54,7 @@ fn agree(rel: &str, closes_live: bool) {
         assert!((x.start - y.start).abs() < 1e-6 && (x.end - y.end).abs() < 1e-6, "{rel}: {x:?} vs {y:?}");
         assert_eq!(x.pushed_part, y.pushed_part, "{rel}");
     }
-    let fitted = on.job().fit(&cfg, None).expect("a posterior");
+    let (fitted, _) = on.job().update(&cfg, None, &mut Default::default()).expect("a posterior");
     let want = replay.posterior.as_ref().unwrap();
     assert_eq!(fitted.posterior.joints.len(), want.joints.len());
     for (j, r) in fitted.posterior.joints.iter().zip(&want.joints) {

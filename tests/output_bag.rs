@@ -49,3 +49,33 @@ fn output_bag_and_json_agree() {
     }
     assert!(worst < 0.05, "predicted pose {worst} m from the observation");
 }
+
+/// Model criticism leaves the process in every form the contract names: the summary line, the
+/// JSON `criticism` list, `/bom/model_criticism` in the output bag (the same findings, its last
+/// message), and `--plot` figures.
+#[test]
+fn model_criticism_reaches_json_bag_and_plots() {
+    use bom::msgs::ModelCriticism;
+    let dir = tempfile::tempdir().unwrap();
+    let (out, json, plots) = (dir.path().join("out.mcap"), dir.path().join("out.json"), dir.path().join("plots"));
+    let args = ["replay", "bags/mujoco/drawer_limit_undeclared.mcap", "--out", out.to_str().unwrap(), "--json", json.to_str().unwrap(), "--plot", plots.to_str().unwrap()];
+    let (code, stdout, stderr) = bom(&args);
+    assert_eq!(code, 0, "{stderr}");
+    assert!(stdout.contains("added joint_limit"), "{stdout}");
+    let summary: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let found = &summary["criticism"][0];
+    assert_eq!(found["effect"], "joint_limit");
+    assert!(found["params"]["upper"].is_number() && found["params"]["lower"].is_number(), "{found}");
+    let mut diag = bom::diagnostics::Diagnostics::default();
+    let bag = bom::input::read_bag(&out, &mut diag).unwrap();
+    let msgs: Vec<ModelCriticism> = bag.messages.iter().filter(|m| m.topic == "/bom/model_criticism").map(|m| decode_cdr(&m.data).unwrap()).collect();
+    let last = msgs.last().expect("a ModelCriticism message");
+    assert_eq!(last.header.frame_id, "world");
+    let f = last.findings.iter().find(|f| f.effect == "joint_limit").expect("the stop in the bag");
+    assert_eq!(f.part, 2);
+    assert!((f.rmse_before_m - found["rmse_before_m"].as_f64().unwrap()).abs() < 1e-12);
+    assert!((f.rmse_after_m - found["rmse_after_m"].as_f64().unwrap()).abs() < 1e-12);
+    assert!(f.param_names.iter().any(|n| n == "upper") && f.param_names.len() == f.param_values.len());
+    let svg = std::fs::read_to_string(plots.join("part2_joint_limit.svg")).unwrap();
+    assert!(svg.starts_with("<svg") && svg.contains("predicted after") && svg.matches("<circle").count() > 20);
+}

@@ -154,7 +154,7 @@ pub fn kd_dims(ev: &Evidence) -> Vec<usize> {
     ev.parts
         .iter()
         .enumerate()
-        .map(|(i, _)| if ev.windows.is_empty() { 0 } else { dynamics::num_params(ev.springs[i]) })
+        .map(|(i, _)| if ev.windows.is_empty() { 0 } else { dynamics::num_params(&ev.effects[i]) })
         .collect()
 }
 

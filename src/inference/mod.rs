@@ -6,6 +6,7 @@
 
 pub mod adam;
 pub mod guide;
+pub mod laplace;
 pub mod structure;
 pub mod summary;
 pub mod svi;

@@ -47,6 +47,7 @@ use serde::{Deserialize, Serialize};
 
 use super::adam::Adam;
 use super::guide::{self, Block, GuideState, Layout};
+use super::laplace;
 use super::structure;
 use super::summary::{self, softmax};
 use super::Posterior;
@@ -329,67 +330,13 @@ fn laplace_kinodynamics(ev: &Evidence, layout: &Layout, theta: &mut [f64], paren
             };
             let mut x: Vec<f64> = theta[kd.mu..kd.mu + kd.dim].to_vec();
             if initial {
-                // A coarse grid over +-2 prior sds of damping and friction, then a finer one.
-                let mut best = (f64::NEG_INFINITY, 0.0, 0.0);
-                for step in [0.75, 0.2] {
-                    let c = if step < 0.5 { (best.1, best.2) } else { (0.0, 0.0) };
-                    for a in -3..=3 {
-                        for m in -3..=3 {
-                            let (xb, xm) = (c.0 + step * a as f64, c.1 + step * m as f64);
-                            (x[0], x[1], x[2], x[3]) = (xb, xm, 0.0, 1.0);
-                            let l = post(&x).0;
-                            if l > best.0 {
-                                best = (l, xb, xm);
-                            }
-                        }
-                    }
-                }
-                (x[0], x[1], x[2], x[3]) = (best.1, best.2, 0.0, 1.0);
+                (x[2], x[3]) = (0.0, 1.0);
+                laplace::coarse_grid(&mut post, &mut x);
             }
-            let hessian = |post: &mut dyn FnMut(&[f64]) -> (f64, Vec<f64>), x: &[f64]| {
-                let d = x.len();
-                let mut h = nalgebra::DMatrix::<f64>::zeros(d, d);
-                for j in 0..d {
-                    let e = 1e-4;
-                    let (mut a, mut b) = (x.to_vec(), x.to_vec());
-                    a[j] += e;
-                    b[j] -= e;
-                    let (ga, gb) = (post(&a).1, post(&b).1);
-                    for r in 0..d {
-                        h[(r, j)] = (ga[r] - gb[r]) / (2.0 * e);
-                    }
-                }
-                (h.clone() + h.transpose()) * 0.5
-            };
-            let (mut fx, mut gx) = post(&x);
-            let mut lambda = 1e-3;
-            for _ in 0..12 {
-                let neg_h = -hessian(&mut post, &x);
-                let mut improved = false;
-                for _ in 0..8 {
-                    let damped = &neg_h + nalgebra::DMatrix::identity(kd.dim, kd.dim) * (lambda * (1.0 + neg_h.trace().abs() / kd.dim as f64));
-                    let Some(chol) = damped.cholesky() else {
-                        lambda *= 10.0;
-                        continue;
-                    };
-                    let step = chol.solve(&nalgebra::DVector::from_column_slice(&gx));
-                    let trial: Vec<f64> = x.iter().zip(step.iter()).map(|(a, s)| a + s.clamp(-1.0, 1.0)).collect();
-                    let (ft, gt) = post(&trial);
-                    if ft.is_finite() && ft > fx {
-                        (x, fx, gx) = (trial, ft, gt);
-                        lambda = (lambda * 0.3).max(1e-6);
-                        improved = true;
-                        break;
-                    }
-                    lambda *= 10.0;
-                }
-                if !improved || gx.iter().map(|g| g * g).sum::<f64>().sqrt() < 1e-3 {
-                    break;
-                }
-            }
+            let x = laplace::mode(&mut post, x);
             theta[kd.mu..kd.mu + kd.dim].copy_from_slice(&x);
             // Covariance: the inverse negative Hessian at the mode, where it is positive definite.
-            let neg_h = -hessian(&mut post, &x);
+            let neg_h = -laplace::hessian(&mut post, &x);
             if let Some(cov) = neg_h.clone().cholesky().map(|c| c.inverse()) {
                 if let Some(l) = cov.cholesky() {
                     let l = l.l();
@@ -425,7 +372,7 @@ fn dynamics_pass(
         // the same deviation scale.
         if w > 0 {
             let (a, b) = (ev.windows[w - 1].frames[ev.windows[w - 1].frames.len() - 1], win.frames[0]);
-            let sd = dynamics::decode::<f64>(s.params.joint, xi, dyncfg).deviation;
+            let sd = dynamics::decode::<f64>(s.params.joint, xi, &ev.effects[i], dyncfg).deviation;
             let d = s.q[b] - s.q[a];
             l += -(d * d) / (2.0 * sd * sd) - (sd * (2.0 * std::f64::consts::PI).sqrt()).ln();
             gq[b] -= d / (sd * sd);
@@ -445,7 +392,7 @@ fn dynamics_pass(
                 mass: chosen[m]
                     .kd
                     .as_ref()
-                    .map(|(_, x)| dynamics::decode::<f64>(chosen[m].params.joint, x, dyncfg).mass)
+                    .map(|(_, x)| dynamics::decode::<f64>(chosen[m].params.joint, x, &ev.effects[m], dyncfg).mass)
                     .unwrap_or(dyncfg.mass_median_kg),
                 com: transforms[m][f0].apply(&chosen[m].params.com),
                 unit_inertia: rotate(&transforms[m][f0], &ev.parts[m].unit_inertia),
@@ -458,6 +405,7 @@ fn dynamics_pass(
             unit_inertia: rotate(&own, &ev.parts[i].unit_inertia),
             subtree,
             pushed,
+            effects: ev.effects[i],
         };
         let (lw, gxw, gqw) = dynamics::window_prior(&jw, win, &s.q, xi, dyncfg);
         l += lw;
@@ -911,7 +859,7 @@ mod tests {
             }],
             contact: vec![vec![0.0]],
             windows: vec![],
-            springs: vec![false],
+            effects: vec![Default::default()],
         };
         let pre = vec![Displacement::identity(); k];
         for joint in [JointType::Prismatic, JointType::Revolute] {

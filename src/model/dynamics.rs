@@ -27,7 +27,8 @@ use num_dual::DualSVec64;
 use serde::{Deserialize, Serialize};
 
 use super::likelihood::WindowEvidence;
-use super::physics::{generalised_force, generalised_inertia, JointDynamics, JointKind};
+use super::physics::{generalised_force, generalised_inertia, JointDynamics, JointKind, JointLimit};
+use super::effects::{EffectSet, EffectsConfig};
 use super::{c, JointParams, JointType, Real};
 
 /// Priors and integration settings of dynamic mode (`model.dynamics` section of the config).
@@ -46,11 +47,8 @@ pub struct DynamicsConfig {
     /// Deviation of the coordinates from the simulated trajectory [m of centre-of-mass path].
     pub deviation_median_m: f64,
     pub deviation_log_sd: f64,
-    /// Declared springs: stiffness, and the prior sd of the rest position around the window's
-    /// start [m of path].
-    pub spring_median: [f64; 2],
-    pub spring_log_sd: f64,
-    pub spring_rest_sd_m: f64,
+    /// Priors of the effects beyond damping and friction ([`EffectsConfig`]).
+    pub effects: EffectsConfig,
     /// Velocity scale of the smoothed Coulomb friction (m/s or rad/s).
     pub friction_velocity: f64,
     /// Integration step of the simulation \[s\].
@@ -68,9 +66,7 @@ impl Default for DynamicsConfig {
             mass_log_sd: 1.5,
             deviation_median_m: 0.005,
             deviation_log_sd: 1.0,
-            spring_median: [10.0, 1.0],
-            spring_log_sd: 1.5,
-            spring_rest_sd_m: 0.3,
+            effects: EffectsConfig::default(),
             friction_velocity: 0.01,
             step_s: 0.005,
         }
@@ -83,31 +79,51 @@ fn kind_index(joint: JointType) -> usize {
 }
 
 /// Number of standardised kinodynamic parameters of a movable joint: damping, friction, mass,
-/// deviation, and stiffness and rest with a declared spring.
-pub fn num_params(spring: bool) -> usize {
-    if spring { 6 } else { 4 }
+/// deviation, then those of its effects ([`EffectSet::num_params`]).
+pub fn num_params(effects: &EffectSet) -> usize {
+    4 + effects.num_params()
 }
 
-/// Decoded kinodynamic parameters (joint units; `rest` in metres of path).
+/// Decoded kinodynamic parameters (joint units; positions in metres of path).
 #[derive(Debug, Clone, Copy)]
 pub struct KinoParams<T: Real> {
     pub damping: T,
     pub friction: T,
     pub mass: T,
     pub deviation: T,
+    /// Spring stiffness (N/m or N·m/rad; 0 without one) and rest position [m of path].
     pub stiffness: T,
     pub rest: T,
+    /// Joint stops: lower and upper positions [m of path] where present, and the contact
+    /// stiffness (N/m or N·m/rad).
+    pub limit: Option<(Option<T>, Option<T>, T)>,
+    /// Quadratic damping coefficient (N·s²/m² or N·m·s²/rad²; 0 without it).
+    pub quadratic_damping: T,
 }
 
-/// Decode standardised `xi` (length [`num_params`]) for a movable `joint`.
-pub fn decode<T: Real>(joint: JointType, xi: &[T], cfg: &DynamicsConfig) -> KinoParams<T> {
+/// Decode standardised `xi` (length [`num_params`]) for a movable `joint` with `effects`; the
+/// layout is the base four, then each effect's in [`EffectKind`] order.
+pub fn decode<T: Real>(joint: JointType, xi: &[T], effects: &EffectSet, cfg: &DynamicsConfig) -> KinoParams<T> {
     let k = kind_index(joint);
+    let e = &cfg.effects;
     let ln = |x: T, median: f64, sd: f64| (x * sd).exp() * median;
-    let (stiffness, rest) = if xi.len() >= 6 {
-        (ln(xi[4], cfg.spring_median[k], cfg.spring_log_sd), xi[5] * cfg.spring_rest_sd_m)
+    let mut at = 4;
+    let mut next = || {
+        at += 1;
+        xi[at - 1]
+    };
+    let (stiffness, rest) = if effects.spring {
+        let (a, b) = (next(), next());
+        (ln(a, e.spring_median[k], e.spring_log_sd), b * e.spring_rest_sd_m)
     } else {
         (c(0.0), c(0.0))
     };
+    let limit = effects.limit.map(|l| {
+        let lower = l.lower.map(|anchor| next() * e.limit_position_sd_m + anchor);
+        let upper = l.upper.map(|anchor| next() * e.limit_position_sd_m + anchor);
+        (lower, upper, ln(next(), e.limit_stiffness_median[k], e.limit_stiffness_log_sd))
+    });
+    let quadratic_damping = if effects.quadratic_damping { ln(next(), e.quadratic_damping_median[k], e.quadratic_damping_log_sd) } else { c(0.0) };
     KinoParams {
         damping: ln(xi[0], cfg.damping_median[k], cfg.damping_log_sd),
         friction: ln(xi[1], cfg.friction_median[k], cfg.friction_log_sd),
@@ -115,6 +131,8 @@ pub fn decode<T: Real>(joint: JointType, xi: &[T], cfg: &DynamicsConfig) -> Kino
         deviation: ln(xi[3], cfg.deviation_median_m, cfg.deviation_log_sd),
         stiffness,
         rest,
+        limit,
+        quadratic_damping,
     }
 }
 
@@ -158,63 +176,102 @@ pub struct JointInWindow<'a> {
     pub subtree: Vec<SubtreeBody>,
     /// Whether the wrench of this window acts on the joint's subtree.
     pub pushed: bool,
+    /// The effects on the joint beyond damping and friction.
+    pub effects: EffectSet,
 }
-
-/// Dual number for the physics prior: up to 6 kinodynamic parameters and `q_{w,0}`.
-type D = DualSVec64<7>;
-/// Dual slot of the window's starting coordinate.
-const Q0_SLOT: usize = 6;
 
 /// The physics prior of one joint in one window and its gradient: returns
 /// `(sum_t log N(q_t; Psi_t, sigma_d^2), d/d xi_kd, d/d q_t)` over the window's frames after its
 /// first, where `q[t]` are the joint's coordinates on the evidence grid [m of path] and `xi` its
-/// standardised kinodynamic parameters. `d/d q_t` has one entry per frame of the window (the first
-/// is the derivative with respect to `q_{w,0}` through the simulation).
+/// standardised kinodynamic parameters (layout of [`decode`] for `jw.effects`). `d/d q_t` has one
+/// entry per frame of the window (the first is the derivative with respect to `q_{w,0}` through
+/// the simulation).
 pub fn window_prior(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64], xi: &[f64], cfg: &DynamicsConfig) -> (f64, Vec<f64>, Vec<f64>) {
+    // Dual numbers as wide as the parameters plus `q_{w,0}`: the base model's 4 + 1 are the
+    // common case and the cheapest.
+    match xi.len() {
+        0..=4 => window_prior_n::<5>(jw, win, q, xi, cfg),
+        5..=6 => window_prior_n::<7>(jw, win, q, xi, cfg),
+        7..=10 => window_prior_n::<11>(jw, win, q, xi, cfg),
+        n => panic!("{n} kinodynamic parameters: at most 10 (4 base, 6 of effects)"),
+    }
+}
+
+/// The simulated trajectory of one joint in one window, in metres of path at every integration
+/// step (the first entry is `q0`), or `None` when nothing moves it (not pushed, no spring, no
+/// gravity). `kp` are the decoded parameters (of any scalar type).
+pub fn simulate_window<T: Real>(jw: &JointInWindow<'_>, win: &WindowEvidence, q0: T, kp: &KinoParams<T>, cfg: &DynamicsConfig) -> Option<Vec<T>> {
     let p = jw.joint;
-    let nk = xi.len();
-    let xd: Vec<D> = xi.iter().enumerate().map(|(j, &x)| D::from_re(x).derivative(j)).collect();
-    let kp = decode(p.joint, &xd, cfg);
-    let frames = &win.frames;
-    let q0 = D::from_re(q[frames[0]]).derivative(Q0_SLOT);
     // Joint coordinate of the physics: the angle for a revolute joint (path / radius), metres for
     // a prismatic one.
     let (kind, scale) = match p.joint {
         JointType::Revolute => (JointKind::Revolute, p.radius),
         _ => (JointKind::Prismatic, 1.0),
     };
-    let last = win.frame_substep[frames.len() - 1];
-    let simulated = jw.pushed || kp.stiffness.re > 0.0;
-    let traj: Vec<D> = if simulated {
-        let mut bodies = vec![(kp.mass, jw.com.map(D::from), jw.unit_inertia.map(D::from))];
-        bodies.extend(jw.subtree.iter().map(|b| (D::from(b.mass), b.com.map(D::from), b.unit_inertia.map(D::from))));
-        let inertia = generalised_inertia(kind, &p.direction.map(D::from), &p.point.map(D::from), &bodies);
-        let tau: Vec<f64> = (0..last)
-            .map(|n| if jw.pushed { generalised_force(kind, &p.direction, &p.point, &win.point[n], &win.force[n], &win.torque[n]) } else { 0.0 })
-            .collect();
-        let jd = JointDynamics { inertia, damping: kp.damping, friction: kp.friction, stiffness: kp.stiffness * (scale * scale), rest: kp.rest / scale };
-        let mut traj = vec![q0 / scale];
-        traj.extend(jd.simulate(q0 / scale, D::from(0.0), &tau, win.h, cfg.friction_velocity));
-        traj
-    } else {
-        // No force on the subtree and no spring: the joint stays where it is.
-        Vec::new()
-    };
+    let last = win.frame_substep[win.frames.len() - 1];
+    let simulated = jw.pushed || kp.stiffness.re() > 0.0 || jw.effects.gravity;
+    if !simulated {
+        return None;
+    }
+    let mut bodies = vec![(kp.mass, jw.com.map(T::from), jw.unit_inertia.map(T::from))];
+    bodies.extend(jw.subtree.iter().map(|b| (T::from(b.mass), b.com.map(T::from), b.unit_inertia.map(T::from))));
+    let inertia = generalised_inertia(kind, &p.direction.map(T::from), &p.point.map(T::from), &bodies);
+    let tau: Vec<f64> = (0..last)
+        .map(|n| if jw.pushed { generalised_force(kind, &p.direction, &p.point, &win.point[n], &win.force[n], &win.torque[n]) } else { 0.0 })
+        .collect();
+    let mut jd = JointDynamics::new(inertia, kp.damping, kp.friction, kp.stiffness, kp.rest / scale);
+    if let Some((lower, upper, stiffness)) = kp.limit {
+        let stop = |position: T, upper: bool| JointLimit { position: position / scale, stiffness, upper, width: cfg.effects.limit_width_m / scale };
+        jd.limits = [lower.map(|p| stop(p, false)), upper.map(|p| stop(p, true))];
+    }
+    jd.quadratic_damping = kp.quadratic_damping;
+    if jw.effects.gravity {
+        let g = Vector3::from(cfg.effects.gravity);
+        let d = p.direction;
+        jd.gravity_at = q0 / scale;
+        for (m, com, _) in &bodies {
+            match kind {
+                JointKind::Revolute => {
+                    // The weight's moment turns with the joint: r(a) = R(d, a) r_perp + r_par.
+                    let r = com.map(|x| x.re()) - p.point;
+                    let perp = r - d * r.dot(&d);
+                    jd.gravity[1] += *m * d.dot(&perp.cross(&g));
+                    jd.gravity[2] += *m * d.dot(&d.cross(&perp).cross(&g));
+                }
+                _ => jd.gravity[0] += *m * d.dot(&g),
+            }
+        }
+    }
+    let mut traj = vec![q0];
+    traj.extend(jd.simulate(q0 / scale, T::from(0.0), &tau, win.h, cfg.friction_velocity).into_iter().map(|x| x * scale));
+    Some(traj)
+}
+
+fn window_prior_n<const N: usize>(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64], xi: &[f64], cfg: &DynamicsConfig) -> (f64, Vec<f64>, Vec<f64>) {
+    type D<const N: usize> = DualSVec64<N>;
+    let nk = xi.len();
+    let q0_slot = N - 1;
+    let xd: Vec<D<N>> = xi.iter().enumerate().map(|(j, &x)| D::<N>::from_re(x).derivative(j)).collect();
+    let kp = decode(jw.joint.joint, &xd, &jw.effects, cfg);
+    let frames = &win.frames;
+    let q0 = D::<N>::from_re(q[frames[0]]).derivative(q0_slot);
+    // No force on the subtree, no spring, no gravity: the joint stays where it is.
+    let traj = simulate_window(jw, win, q0, &kp, cfg);
     let var = kp.deviation * kp.deviation;
     let norm = num_dual::DualNum::ln(&(var * (2.0 * std::f64::consts::PI))) * 0.5;
-    let mut ll = D::from(0.0);
+    let mut ll = D::<N>::from(0.0);
     let mut gq = vec![0.0; frames.len()];
     for (k, &t) in frames.iter().enumerate().skip(1) {
-        let psi = if simulated { traj[win.frame_substep[k]] * scale } else { q0 };
-        let d = D::from(q[t]) - psi;
+        let psi = traj.as_ref().map_or(q0, |tr| tr[win.frame_substep[k]]);
+        let d = D::<N>::from(q[t]) - psi;
         let term = -(d * d) / (var * 2.0) - norm;
         ll += term;
         // Direct derivative with respect to q_t (the dual part carries d/d q_{w,0} via psi).
         gq[k] = -d.re / var.re;
     }
-    let eps = ll.eps.unwrap_generic(nalgebra::Const::<7>, nalgebra::U1);
+    let eps = ll.eps.unwrap_generic(nalgebra::Const::<N>, nalgebra::U1);
     let gx: Vec<f64> = (0..nk).map(|j| eps[j]).collect();
-    gq[0] += eps[Q0_SLOT];
+    gq[0] += eps[q0_slot];
     (ll.re, gx, gq)
 }
 
@@ -223,39 +280,74 @@ mod tests {
     use super::*;
     use crate::model::likelihood::WindowEvidence;
 
+    /// A door of radius 0.3 m on `direction` through (0, 0, 0.9).
+    fn door(direction: Vector3<f64>) -> JointParams<f64> {
+        JointParams {
+            joint: JointType::Revolute,
+            com: Vector3::new(0.3, 0.0, 0.9),
+            noise: 0.005,
+            rot_noise: 0.02,
+            direction,
+            point: Vector3::new(0.0, 0.0, 0.9),
+            radius: 0.3,
+        }
+    }
+
+    /// 2 s at 30 Hz, evidence every 5th frame; a push of `force` N (along y) at the door's edge
+    /// for 0.8 s.
+    fn push_window(cfg: &DynamicsConfig, force: f64) -> WindowEvidence {
+        let h = cfg.step_s;
+        let n = (2.0 / h) as usize;
+        WindowEvidence {
+            frames: (0..13).collect(),
+            frame_substep: (0..13).map(|k| ((k as f64 * 5.0 / 30.0) / h).round() as usize).collect(),
+            pushed: Some(0),
+            h,
+            force: (0..n).map(|i| if (i as f64) * h < 0.8 { Vector3::new(0.0, force, 0.0) } else { Vector3::zeros() }).collect(),
+            torque: vec![Vector3::zeros(); n],
+            point: vec![Vector3::new(0.5, 0.0, 0.9); n],
+        }
+    }
+
+    /// The physics prior's dual-number gradient against central finite differences, in every
+    /// parameter and in the coordinates of the first, middle and last frame.
+    fn check_gradients(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64], xi: &[f64], cfg: &DynamicsConfig) {
+        let (_, gx, gq) = window_prior(jw, win, q, xi, cfg);
+        let e = 1e-6;
+        let fd = |a: &[f64], b: &[f64], qa: &[f64], qb: &[f64]| (window_prior(jw, win, qa, a, cfg).0 - window_prior(jw, win, qb, b, cfg).0) / (2.0 * e);
+        for j in 0..xi.len() {
+            let (mut a, mut b) = (xi.to_vec(), xi.to_vec());
+            a[j] += e;
+            b[j] -= e;
+            let d = fd(&a, &b, q, q);
+            assert!((d - gx[j]).abs() < 1e-4 * (1.0 + d.abs()), "xi[{j}]: fd {d} vs dual {}", gx[j]);
+        }
+        let n = win.frames.len();
+        for k in [0, n / 2, n - 1] {
+            let t = win.frames[k];
+            let (mut a, mut b) = (q.to_vec(), q.to_vec());
+            a[t] += e;
+            b[t] -= e;
+            let d = fd(xi, xi, &a, &b);
+            assert!((d - gq[k]).abs() < 1e-4 * (1.0 + d.abs()), "q[{t}]: fd {d} vs dual {}", gq[k]);
+        }
+    }
+
     /// A pushed door's coordinates: the prior prefers the damping and friction that produced
     /// them, and its dual-number gradient matches finite differences.
     #[test]
     fn physics_prior_finds_the_parameters_and_its_gradient_is_right() {
         let cfg = DynamicsConfig::default();
-        let joint = JointParams {
-            joint: JointType::Revolute,
-            com: Vector3::new(0.3, 0.0, 0.9),
-            noise: 0.005,
-            rot_noise: 0.02,
-            direction: Vector3::z(),
-            point: Vector3::new(0.0, 0.0, 0.9),
-            radius: 0.3,
-        };
+        let joint = door(Vector3::z());
         let unit_inertia = Matrix3::from_diagonal(&Vector3::new(0.01, 0.01, 0.02));
-        let jw = JointInWindow { joint: &joint, com: joint.com, unit_inertia, subtree: vec![], pushed: true };
-        // 2 s at 30 Hz, evidence every 5th frame; a 6 N push at the door's edge for 0.8 s.
-        let h = cfg.step_s;
-        let n = (2.0 / h) as usize;
-        let win = WindowEvidence {
-            frames: (0..13).collect(),
-            frame_substep: (0..13).map(|k| ((k as f64 * 5.0 / 30.0) / h).round() as usize).collect(),
-            pushed: Some(0),
-            h,
-            force: (0..n).map(|i| if (i as f64) * h < 0.8 { Vector3::new(0.0, 6.0, 0.0) } else { Vector3::zeros() }).collect(),
-            torque: vec![Vector3::zeros(); n],
-            point: vec![Vector3::new(0.5, 0.0, 0.9); n],
-        };
+        let jw = JointInWindow { joint: &joint, com: joint.com, unit_inertia, subtree: vec![], pushed: true, effects: EffectSet::default() };
+        let win = push_window(&cfg, 6.0);
+        let (h, n) = (cfg.step_s, win.force.len());
         // Coordinates simulated with b = 1.5, mu = 0.8, m = 0.5 (and no deviation).
         let truth = [(1.5f64 / 1.0).ln() / 1.5, (0.8f64 / 1.0).ln() / 1.5, (0.5f64).ln() / 1.5];
         let inertia = generalised_inertia(JointKind::Revolute, &joint.direction, &joint.point, &[(0.5, joint.com, unit_inertia)]);
         let tau: Vec<f64> = (0..n).map(|i| if (i as f64) * h < 0.8 { 6.0 * 0.5 } else { 0.0 }).collect();
-        let jd = JointDynamics { inertia, damping: 1.5, friction: 0.8, stiffness: 0.0, rest: 0.0 };
+        let jd = JointDynamics::new(inertia, 1.5, 0.8, 0.0, 0.0);
         let mut sim = vec![0.0];
         sim.extend(jd.simulate(0.0, 0.0, &tau, h, cfg.friction_velocity));
         let q: Vec<f64> = win.frame_substep.iter().map(|&s| sim[s] * 0.3).collect();
@@ -266,24 +358,30 @@ mod tests {
             assert!(at(truth[0] + db, truth[1] + dm) < best - 1.0, "({db}, {dm})");
         }
         // Gradient against central finite differences, away from the optimum.
-        let xi = [0.2, -0.3, 0.1, -0.5];
-        let (_, gx, gq) = window_prior(&jw, &win, &q, &xi, &cfg);
-        let e = 1e-6;
-        for j in 0..4 {
-            let (mut a, mut b) = (xi, xi);
-            a[j] += e;
-            b[j] -= e;
-            let fd = (window_prior(&jw, &win, &q, &a, &cfg).0 - window_prior(&jw, &win, &q, &b, &cfg).0) / (2.0 * e);
-            assert!((fd - gx[j]).abs() < 1e-4 * (1.0 + fd.abs()), "xi[{j}]: fd {fd} vs dual {}", gx[j]);
-        }
-        for t in [0, 4, 12] {
-            let (mut a, mut b) = (q.clone(), q.clone());
-            a[t] += e;
-            b[t] -= e;
-            let fd = (window_prior(&jw, &win, &a, &xi, &cfg).0 - window_prior(&jw, &win, &b, &xi, &cfg).0) / (2.0 * e);
-            assert!((fd - gq[t]).abs() < 1e-4 * (1.0 + fd.abs()), "q[{t}]: fd {fd} vs dual {}", gq[t]);
-        }
+        check_gradients(&jw, &win, &q, &[0.2, -0.3, 0.1, -0.5], &cfg);
         let (m, sd, lo, hi) = log_normal_summary(2.0, 0.5, 0.0, 0.0);
         assert!((m - 2.0).abs() < 1e-12 && sd == 0.0 && lo == hi);
+    }
+
+    /// With every effect on (spring, both stops, gravity on a tilted hinge, quadratic damping) the
+    /// physics prior's dual-number gradient still matches finite differences, in every parameter
+    /// and in the coordinates.
+    #[test]
+    fn physics_prior_gradient_with_every_effect_matches_finite_differences() {
+        let cfg = DynamicsConfig::default();
+        let joint = door(Vector3::new(0.3, 0.0, 1.0).normalize());
+        let effects = EffectSet {
+            spring: true,
+            limit: Some(crate::model::effects::LimitSpec { lower: Some(-0.05), upper: Some(0.12) }),
+            gravity: true,
+            quadratic_damping: true,
+        };
+        let unit_inertia = Matrix3::from_diagonal(&Vector3::new(0.01, 0.01, 0.02));
+        let jw = JointInWindow { joint: &joint, com: joint.com, unit_inertia, subtree: vec![], pushed: true, effects };
+        let win = push_window(&cfg, 8.0);
+        let q: Vec<f64> = (0..13).map(|k| 0.01 * k as f64).collect();
+        let xi: Vec<f64> = (0..num_params(&effects)).map(|j| 0.1 * ((j as f64) * 1.7).sin()).collect();
+        assert_eq!(xi.len(), 4 + 2 + 3 + 1);
+        check_gradients(&jw, &win, &q, &xi, &cfg);
     }
 }

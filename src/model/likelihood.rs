@@ -14,6 +14,7 @@ use std::collections::BTreeMap;
 
 use nalgebra::{Isometry3, Matrix3, Vector3};
 
+use super::effects::EffectSet;
 use super::{c, ModelConfig, Real};
 use crate::input::WrenchSample;
 use crate::perception::{geometry, PartGeometry, PartObservation, PartTracks};
@@ -110,9 +111,10 @@ pub struct Evidence {
     pub contact: Vec<Vec<f64>>,
     /// Dynamic mode: the windows with their wrenches (empty in kinematic mode).
     pub windows: Vec<WindowEvidence>,
-    /// Per part: whether the recording declares a spring on its joint (`bom_ground_truth`
-    /// effects), which the physics then includes with its parameters inferred.
-    pub springs: Vec<bool>,
+    /// Per part: the effects on its joint beyond damping and friction — declared by the recording
+    /// (`bom_ground_truth` effects) or adopted by model criticism — which the physics includes
+    /// with their parameters inferred.
+    pub effects: Vec<EffectSet>,
 }
 
 impl Evidence {
@@ -131,13 +133,13 @@ impl Evidence {
     /// its duration / `min_frames`.
     ///
     /// With wrenches (dynamic mode), each window's measured wrench is resampled on the physics'
-    /// integration steps; `springs` lists the labels of parts with a declared spring.
+    /// integration steps; `effects` gives the effects on each part's joint by label (absent: none).
     pub fn new(
         tracks: &PartTracks,
         geometry: &BTreeMap<u32, PartGeometry>,
         windows: &[Window],
         wrenches: &[WrenchSample],
-        springs: &[u32],
+        effects: &BTreeMap<u32, EffectSet>,
         grid: &Grid,
     ) -> Evidence {
         let (min_dt, min_frames, max_frames) = (grid.min_dt_s, grid.min_frames, grid.max_frames);
@@ -234,8 +236,8 @@ impl Evidence {
                 })
                 .collect()
         };
-        let springs = labels.iter().map(|l| springs.contains(l)).collect();
-        Evidence { times, window_start, parts, contact, windows: dynamic, springs }
+        let effects = labels.iter().map(|l| effects.get(l).copied().unwrap_or_default()).collect();
+        Evidence { times, window_start, parts, contact, windows: dynamic, effects }
     }
 
     /// Number of grid frames.

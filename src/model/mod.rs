@@ -15,6 +15,7 @@
 //! differences).
 
 pub mod dynamics;
+pub mod effects;
 pub mod likelihood;
 pub mod physics;
 pub mod prismatic;

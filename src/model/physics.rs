@@ -27,7 +27,10 @@
 //!
 //! [`JointDynamics`] is the same physics for one joint whose parent does not move and whose
 //! subtree is locked (its generalised inertia is then constant): what the model uses per joint
-//! and window, tested against [`Articulation`].
+//! and window, tested against [`Articulation`]. It also carries the effects of
+//! [`crate::model::effects`]: joint stops ([`JointLimit`], implicit, linearised per step), gravity
+//! (explicit) and quadratic damping (implicit, with the friction), each tested against a closed
+//! form.
 //!
 //! **Coulomb friction** is smoothed as `-mu * tanh(q' / v_s)` so that it has a gradient: it
 //! equals the hard law `-mu * sign(q')` up to `mu * (1 - tanh(|q'| / v_s))`, which vanishes as
@@ -347,9 +350,13 @@ fn solve<T: Real>(a: &mut [Vec<T>], b: &mut [T]) {
 }
 
 /// One joint whose parent does not move and whose subtree is locked:
-/// `I qdd = tau(t) - b qd - mu tanh(qd / v_s) - k (q - rest)` in the joint's coordinate (rad or m),
-/// with the subtree's constant generalised inertia `I` (kg·m² or kg). Integrated like
-/// [`Articulation::simulate`].
+/// `I qdd = tau(t) - b qd - mu tanh(qd / v_s) + f(q)` in the joint's coordinate (rad or m), with
+/// the subtree's constant generalised inertia `I` (kg·m² or kg) and the position-dependent forces
+/// `f(q)` of the effects ([`crate::model::effects`]): the spring `-k (q - rest)`, a joint limit
+/// ([`JointLimit`]) and gravity ([`JointDynamics::gravity`]). Integrated like
+/// [`Articulation::simulate`]: the spring and the limit implicitly (the limit linearised at the
+/// step's start, so a stiff stop stays stable), gravity explicitly (it may push away from an
+/// equilibrium, which would break the monotone implicit solve).
 #[derive(Debug, Clone, Copy)]
 pub struct JointDynamics<T: Real> {
     pub inertia: T,
@@ -357,6 +364,73 @@ pub struct JointDynamics<T: Real> {
     pub friction: T,
     pub stiffness: T,
     pub rest: T,
+    /// Joint stops, lower and upper, where the model has them.
+    pub limits: [Option<JointLimit<T>>; 2],
+    /// Generalised gravity force `g0 + g1 cos(q - q_g) + g2 sin(q - q_g)` (N or N·m): constant
+    /// along a prismatic axis; for a revolute one the moment of the weights turning with the joint
+    /// (`q_g` is the coordinate at which `g1`, `g2` were computed). Zeros: no gravity.
+    pub gravity: [T; 3],
+    pub gravity_at: T,
+    /// Quadratic damping `-c q' |q'|` (N·s²/m² or N·m·s²/rad²): the drag of a fluid or a
+    /// soft-close damper, which grows with speed faster than the viscous term. Monotone in the
+    /// velocity, so the implicit solve keeps a unique root.
+    pub quadratic_damping: T,
+}
+
+/// A one-sided joint stop: a soft contact `f = -k w softplus((q - position) / w)` beyond an upper
+/// limit (mirrored for a lower one), `w` the contact width (m or rad). As `w -> 0` it is the
+/// penalty contact `-k max(q - position, 0)`; its derivative in `q` is never positive, so the
+/// implicit velocity solve stays monotone.
+#[derive(Debug, Clone, Copy)]
+pub struct JointLimit<T: Real> {
+    pub position: T,
+    /// Contact stiffness (N/m or N·m/rad).
+    pub stiffness: T,
+    /// Whether the stop is above (`true`) or below the free range.
+    pub upper: bool,
+    pub width: f64,
+}
+
+impl<T: Real> JointLimit<T> {
+    /// The stop's force at `q` and its derivative `df/dq` (<= 0).
+    pub fn force(&self, q: T) -> (T, T) {
+        let s = if self.upper { 1.0 } else { -1.0 };
+        let x = (q - self.position) * (s / self.width);
+        // softplus and the logistic function, overflow-safe in both directions.
+        let (sp, sig) = if x.re() > 0.0 {
+            let e = (-x).exp();
+            (x + (e + 1.0).ln(), (e + 1.0).recip())
+        } else {
+            let e = x.exp();
+            ((e + 1.0).ln(), e / (e + 1.0))
+        };
+        (-(self.stiffness * sp) * (s * self.width), -(self.stiffness * sig))
+    }
+}
+
+impl<T: Real> JointDynamics<T> {
+    /// Damping, friction and a spring only: no limit, no gravity.
+    pub fn new(inertia: T, damping: T, friction: T, stiffness: T, rest: T) -> Self {
+        JointDynamics { inertia, damping, friction, stiffness, rest, limits: [None, None], gravity: [c(0.0); 3], gravity_at: c(0.0), quadratic_damping: c(0.0) }
+    }
+
+    /// The position-dependent forces at `q`: `(f, K)` with `f` the spring, limit and gravity force
+    /// and `K >= 0` the stiffness the implicit step uses (spring plus the limit's slope).
+    fn position_force(&self, q: T) -> (T, T) {
+        let mut f = -(self.stiffness * (q - self.rest));
+        let mut k = self.stiffness;
+        for l in self.limits.iter().flatten() {
+            let (fl, dl) = l.force(q);
+            f += fl;
+            k -= dl;
+        }
+        let [g0, g1, g2] = self.gravity;
+        if g0.re() != 0.0 || g1.re() != 0.0 || g2.re() != 0.0 {
+            let a = q - self.gravity_at;
+            f += g0 + g1 * a.cos() + g2 * a.sin();
+        }
+        (f, k)
+    }
 }
 
 /// Generalised inertia of rigid bodies `(mass, centre of mass, inertia about it)` about a revolute
@@ -470,24 +544,30 @@ impl<T: Real> JointDynamics<T> {
     pub fn simulate(&self, q0: T, v0: T, tau: &[f64], h: f64, friction_velocity: f64) -> Vec<T> {
         let (mut q, mut v) = (q0, v0);
         let vs = friction_velocity;
-        let (ir, br, fr, kr) = (self.inertia.re(), self.damping.re(), self.friction.re(), self.stiffness.re());
+        let (ir, br, fr) = (self.inertia.re(), self.damping.re(), self.friction.re());
         tau.iter()
             .map(|&t| {
                 // The scalar case of `implicit_velocity`, without its allocations: Newton on the
                 // real parts from the previous velocity, safeguarded by bisection on the bracket
                 // that a monotone residual always has, then one Newton step in T.
-                let jf = JointForce { damping: self.damping, friction: self.friction, stiffness: self.stiffness, q: q - self.rest };
-                let (vr, qr) = (v.re(), jf.q.re());
-                let g = |w: f64| ir * (w - vr) - (t - br * w - fr * (w / vs).tanh() - kr * (qr + w * h)) * h;
-                let dg = |w: f64| {
-                    let th = tanh(w / vs);
-                    ir + (br + fr * (1.0 - th * th) / vs + kr * h) * h
+                // Position forces linearised at the step's start: f(q + w h) ~ f0 - K w h.
+                let (f0, k) = self.position_force(q);
+                let (vr, f0r, kr) = (v.re(), f0.re(), k.re());
+                let cr = self.quadratic_damping.re();
+                // Friction and quadratic damping, and their derivative in the velocity.
+                let fric = |w: f64| fr * (w / vs).tanh() + cr * w * w.abs();
+                let dfric = |w: f64| {
+                    let th = (w / vs).tanh();
+                    fr * (1.0 - th * th) / vs + 2.0 * cr * w.abs()
                 };
-                // Bracket: g is increasing; the friction term is bounded by fr.
+                let g = |w: f64| ir * (w - vr) - (t + f0r - br * w - fric(w) - kr * w * h) * h;
+                let dg = |w: f64| ir + (br + dfric(w) + kr * h) * h;
+                // Bracket: g is increasing; the friction term is bounded by fr, and the quadratic
+                // damping only pulls the root towards zero.
                 let lin = ir + (br + kr * h) * h;
-                let centre = (ir * vr + (t - kr * qr) * h) / lin;
+                let centre = (ir * vr + (t + f0r) * h) / lin;
                 let span = fr * h / lin + 1e-12;
-                let (mut lo, mut hi) = (centre - span - 1e-9, centre + span + 1e-9);
+                let (mut lo, mut hi) = ((centre - span).min(0.0) - 1e-9, (centre + span).max(0.0) + 1e-9);
                 if !(lo <= hi) {
                     // Non-finite parameters: no motion to compute (the caller sees NaN).
                     v = c::<T>(f64::NAN);
@@ -495,7 +575,7 @@ impl<T: Real> JointDynamics<T> {
                     return q;
                 }
                 let mut w = vr.clamp(lo, hi);
-                for _ in 0..50 {
+                for _ in 0..60 {
                     let gw = g(w);
                     if gw.abs() < 1e-14 * (1.0 + ir * w.abs()) {
                         break;
@@ -506,9 +586,15 @@ impl<T: Real> JointDynamics<T> {
                 }
                 let wt = c::<T>(w);
                 let th = tanh(wt / vs);
-                let force = -(self.damping * wt) - self.friction * th - self.stiffness * (jf.q + wt * h);
+                let (mut fr_t, mut dfr_t) = (self.friction * th, self.friction * (c::<T>(1.0) - th * th) / vs);
+                if cr != 0.0 {
+                    let aw = if w >= 0.0 { wt } else { -wt };
+                    fr_t += self.quadratic_damping * wt * aw;
+                    dfr_t += self.quadratic_damping * aw * 2.0;
+                }
+                let force = -(self.damping * wt) - fr_t + f0 - k * wt * h;
                 let res = self.inertia * (wt - v) - (force + t) * h;
-                let slope = self.inertia + (self.damping + self.friction * (c::<T>(1.0) - th * th) / vs + self.stiffness * h) * h;
+                let slope = self.inertia + (self.damping + dfr_t + k * h) * h;
                 v = wt - res / slope;
                 q += v * h;
                 q
@@ -630,7 +716,7 @@ mod tests {
         let h = p.dt / p.substeps as f64;
         // The contact point turns with the door; its moment arm about the hinge stays 0.7 m.
         let tau: Vec<f64> = (0..60 * p.substeps).map(|n| if (n as f64) * h < 1.0 { 6.0 * 0.7 } else { 0.0 }).collect();
-        let jd = JointDynamics { inertia, damping: b, friction: mu, stiffness: k, rest: 0.2 };
+        let jd = JointDynamics::new(inertia, b, mu, k, 0.2);
         let q = jd.simulate(0.0, 0.0, &tau, h, p.friction_velocity);
         for s in (0..60).step_by(5) {
             let qa = traj[s][1];
@@ -639,11 +725,11 @@ mod tests {
         }
         assert!(traj.iter().any(|q| q[1] > 0.5), "it moves: {:?}", traj[59]);
         // A stiff friction (time constant << the step) stays stable: no oscillation at rest.
-        let stiff = JointDynamics { inertia: 0.01, damping: 0.1, friction: 5.0, stiffness: 0.0, rest: 0.0 };
+        let stiff = JointDynamics::new(0.01, 0.1, 5.0, 0.0, 0.0);
         let q: Vec<f64> = stiff.simulate(0.0, 1.0, &vec![0.0; 300], 0.005, 0.01);
         assert!(q.windows(2).skip(100).all(|w| (w[1] - w[0]).abs() < 1e-6), "settled: {:?}", &q[290..]);
         // Undamped spring: period 2 pi sqrt(I / k).
-        let spring = JointDynamics { inertia: 0.5, damping: 0.0, friction: 0.0, stiffness: 2.0, rest: 0.0 };
+        let spring = JointDynamics::new(0.5, 0.0, 0.0, 2.0, 0.0);
         let h = 0.0005;
         let q: Vec<f64> = spring.simulate(0.1, 0.0, &vec![0.0; 8000], h, 0.01);
         let half = q.windows(2).position(|w| w[0] < 0.0 && w[1] >= 0.0).expect("crosses back") as f64 * h;
@@ -715,5 +801,50 @@ mod tests {
             let fd = (f(a) - f(b)) / 2e-6;
             assert!((fd - grad[k]).abs() < 1e-5 * (1.0 + fd.abs()), "parameter {k}: fd {fd} vs dual {}", grad[k]);
         }
+    }
+
+    /// The effects' forces: a slider pushed into a stop rests where the contact force balances
+    /// the push (penetration `F / k_c`, plus the softplus offset `w ln 2` of the smoothing); a
+    /// frictionless slider on a slope accelerates at `g sin(theta)`; a hinge whose weight hangs
+    /// off a horizontal axis swings like the compound pendulum `T = 2 pi sqrt(I / (m g r))`;
+    /// quadratic damping gives the terminal speed `sqrt(F / c)`.
+    #[test]
+    fn joint_limit_gravity_and_quadratic_damping_match_closed_forms() {
+        let h = 0.001;
+        // Stop at 0.1 m, contact stiffness 5000 N/m, push 20 N, damping 20 N s/m.
+        let mut jd = JointDynamics::<f64>::new(2.0, 20.0, 0.0, 0.0, 0.0);
+        jd.limits = [None, Some(JointLimit { position: 0.1, stiffness: 5000.0, upper: true, width: 0.001 })];
+        let q = jd.simulate(0.0, 0.0, &vec![20.0; 4000], h, 0.01);
+        let want = 0.1 + 20.0 / 5000.0;
+        assert!((q[3999] - want).abs() < 0.0015, "rests at {} (want about {want})", q[3999]);
+        // The same push away from a lower stop: nothing holds it back before 0.1 m.
+        let mut free = jd;
+        free.limits = [Some(JointLimit { position: -0.1, stiffness: 5000.0, upper: false, width: 0.001 }), None];
+        let qf = free.simulate(0.0, 0.0, &vec![20.0; 2000], h, 0.01);
+        assert!(qf[1999] > 0.5, "{}", qf[1999]);
+        // A slope of 0.35 rad: g sin(theta) along the slide.
+        let theta: f64 = 0.35;
+        let m = 1.5;
+        let mut slope = JointDynamics::<f64>::new(m, 0.0, 0.0, 0.0, 0.0);
+        slope.gravity = [m * 9.81 * theta.sin(), 0.0, 0.0];
+        let q = slope.simulate(0.0, 0.0, &vec![0.0; 1000], h, 0.01);
+        let want = 0.5 * 9.81 * theta.sin() * 1.0f64.powi(2);
+        assert!((q[999] - want).abs() < 0.01 * want, "{} vs {want}", q[999]);
+        // Pendulum: mass 1 kg at r = 0.3 m below a horizontal hinge, inertia m r^2 (point mass);
+        // torque about the axis -m g r sin(q): cos/sin coefficients (0, -m g r) about q = 0.
+        let r = 0.3;
+        let mut pend = JointDynamics::<f64>::new(r * r, 0.0, 0.0, 0.0, 0.0);
+        pend.gravity = [0.0, 0.0, -9.81 * r];
+        let h = 0.0005;
+        let q = pend.simulate(0.05, 0.0, &vec![0.0; 4000], h, 0.01);
+        let half = q.windows(2).position(|w| w[0] < 0.0 && w[1] >= 0.0).expect("swings back") as f64 * h;
+        let period = 2.0 * std::f64::consts::PI * (r / 9.81f64).sqrt();
+        assert!((half - 0.75 * period).abs() < 0.01 * period, "{half} vs {}", 0.75 * period);
+        // Quadratic damping 8 N s^2/m^2 under 2 N: terminal speed 0.5 m/s.
+        let mut drag = JointDynamics::<f64>::new(1.0, 0.0, 0.0, 0.0, 0.0);
+        drag.quadratic_damping = 8.0;
+        let q = drag.simulate(0.0, 0.0, &vec![2.0; 4000], 0.001, 0.01);
+        let speed = (q[3999] - q[2999]) / 1.0;
+        assert!((speed - 0.5).abs() < 0.005, "terminal speed {speed}");
     }
 }

@@ -4,6 +4,8 @@ use std::collections::BTreeMap;
 
 use serde::Serialize;
 
+use crate::criticism::Finding;
+
 use crate::inference::Posterior;
 use crate::pipeline::Run;
 
@@ -65,6 +67,40 @@ pub struct ModelJson {
     pub joints: Vec<JointJson>,
 }
 
+/// One finding of model criticism (contract section 5, `criticism`).
+#[derive(Debug, Serialize)]
+pub struct FindingJson {
+    pub part: u32,
+    /// `spring`, `joint_limit`, `gravity`, `quadratic_damping`, or `unexplained`.
+    pub effect: String,
+    /// The effect's posterior medians (joint units), or the residual's correlations.
+    pub params: BTreeMap<String, f64>,
+    pub rmse_before_m: f64,
+    pub rmse_after_m: f64,
+    /// ELBO gain of the effect \[nats\] (the best candidate's when unexplained).
+    pub evidence_nats: f64,
+}
+
+/// A part's held-out residual level.
+#[derive(Debug, Serialize)]
+pub struct ResidualJson {
+    pub part: u32,
+    pub rmse_m: Option<f64>,
+    pub noise_rmse_m: f64,
+    pub pattern: BTreeMap<String, f64>,
+}
+
+fn finding_json(f: &Finding) -> FindingJson {
+    FindingJson {
+        part: f.part,
+        effect: f.name().into(),
+        params: f.params.iter().cloned().collect(),
+        rmse_before_m: f.rmse_before_m,
+        rmse_after_m: f.rmse_after_m,
+        evidence_nats: f.evidence_nats,
+    }
+}
+
 /// The whole summary.
 #[derive(Debug, Serialize)]
 pub struct Summary {
@@ -74,7 +110,10 @@ pub struct Summary {
     pub parts: Vec<PartJson>,
     pub windows: Vec<WindowJson>,
     pub model: Option<ModelJson>,
-    pub criticism: Vec<serde_json::Value>,
+    pub criticism: Vec<FindingJson>,
+    /// Per movable part, the held-out residual of the final model and the level the position
+    /// noise alone gives (not in the contract's example; the "residual level" of model criticism).
+    pub residuals: Vec<ResidualJson>,
     /// Bad-input events by `topic: kind` (not in the contract's example; never silent).
     pub diagnostics: BTreeMap<String, u64>,
 }
@@ -127,7 +166,23 @@ pub fn summary(run: &Run) -> Summary {
             .map(|w| WindowJson { start_s: w.start, end_s: w.end, pushed_part: w.pushed_part })
             .collect(),
         model: run.posterior.as_ref().map(model_json),
-        criticism: Vec::new(),
+        criticism: run.findings.iter().map(finding_json).collect(),
+        residuals: run
+            .updates
+            .last()
+            .map(|u| {
+                u.criticism
+                    .parts
+                    .iter()
+                    .map(|p| ResidualJson {
+                        part: p.label,
+                        rmse_m: finite(p.rmse_m),
+                        noise_rmse_m: p.noise_rmse_m,
+                        pattern: p.pattern.entries().iter().map(|(k, v)| (k.to_string(), *v)).collect(),
+                    })
+                    .collect()
+            })
+            .unwrap_or_default(),
         diagnostics: run.diagnostics.counts().clone(),
     }
 }

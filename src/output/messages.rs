@@ -1,12 +1,14 @@
 //! ROS messages of contract section 2 built from a posterior: `bom_msgs/ObjectModel`,
 //! `visualization_msgs/MarkerArray` (joint axes as arrows, part centres of mass as spheres, text
-//! "revolute 0.97") and `geometry_msgs/PoseArray`.
+//! "revolute 0.97"), `geometry_msgs/PoseArray`, and `bom_msgs/ModelCriticism` from model
+//! criticism's findings.
 
 use nalgebra::{Isometry3, Vector3};
 
+use crate::criticism::Finding;
 use crate::inference::{Estimate, Posterior};
 use crate::msgs::{
-    ColorRGBA, Header, JointPosterior, Marker, MarkerArray, ObjectModel, ParameterEstimate, Pose, PoseArray, Quaternion,
+    ColorRGBA, EffectFinding, Header, JointPosterior, Marker, MarkerArray, ModelCriticism, ObjectModel, ParameterEstimate, Pose, PoseArray, Quaternion,
     Time, Vector3 as V3,
 };
 
@@ -134,6 +136,26 @@ pub fn pose_array(poses: &[Isometry3<f64>], stamp: Time, fixed_frame: &str) -> P
                     position: v3(&iso.translation.vector),
                     orientation: Quaternion { x: q.i, y: q.j, z: q.k, w: q.w },
                 }
+            })
+            .collect(),
+    }
+}
+
+/// `bom_msgs/ModelCriticism` of findings: per finding the part, the effect (or `unexplained`),
+/// its parameters by name (joint units; the residual's correlations when unexplained) and the
+/// held-out centre-of-mass RMSE before and after \[m\].
+pub fn model_criticism(findings: &[Finding], stamp: Time, fixed_frame: &str) -> ModelCriticism {
+    ModelCriticism {
+        header: Header { stamp, frame_id: fixed_frame.into() },
+        findings: findings
+            .iter()
+            .map(|f| EffectFinding {
+                part: f.part as i32,
+                effect: f.name().into(),
+                param_names: f.params.iter().map(|(k, _)| k.clone()).collect(),
+                param_values: f.params.iter().map(|(_, v)| *v).collect(),
+                rmse_before_m: f.rmse_before_m,
+                rmse_after_m: f.rmse_after_m,
             })
             .collect(),
     }

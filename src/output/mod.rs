@@ -1,9 +1,10 @@
 //! Output stage: the human summary, the JSON summary (contract section 5), the ROS messages of
-//! contract section 2 and the output bag.
+//! contract section 2, the output bag and the figures of model criticism.
 
 pub mod bag;
 pub mod json;
 pub mod messages;
+pub mod plot;
 pub mod table;
 
 pub use bag::BagWriter;
@@ -18,7 +19,8 @@ use crate::pipeline::Run;
 
 
 /// Write the output topics of a replay to an MCAP bag: `/bom/object_model` and `/bom/markers`
-/// after every update (stamped at the end of the window that triggered it), and
+/// after every update (stamped at the end of the window that triggered it),
+/// `/bom/model_criticism` after every update with findings, and
 /// `/bom/predicted_part_poses` for every cloud frame from the posterior current at that time;
 /// frames before the first update, which the live node could not track yet, use the first
 /// posterior so that the whole recording is tracked.
@@ -35,6 +37,10 @@ pub fn write_replay_bag(run: &Run, path: &Path, cfg: &Config) -> Result<(), Stri
         w.write("/bom/object_model", "bom_msgs/msg/ObjectModel", stamp.nanos(), &model).map_err(err)?;
         let markers = messages::markers(&u.posterior, stamp, frame);
         w.write("/bom/markers", "visualization_msgs/msg/MarkerArray", stamp.nanos(), &markers).map_err(err)?;
+        if !u.criticism.findings.is_empty() {
+            let msg = messages::model_criticism(&u.criticism.findings, stamp, frame);
+            w.write("/bom/model_criticism", "bom_msgs/msg/ModelCriticism", stamp.nanos(), &msg).map_err(err)?;
+        }
     }
     if let Some(first) = run.updates.first() {
         // Frames: every stamp at which some part was seen.

@@ -2,6 +2,7 @@
 
 use std::fmt::Write;
 
+use crate::criticism::Finding;
 use crate::pipeline::Run;
 
 /// A readable table of parts, windows and joints.
@@ -45,6 +46,9 @@ pub fn render(run: &Run) -> String {
             }
         }
     }
+    for line in criticism_lines(run) {
+        let _ = writeln!(s, "  {line}");
+    }
     if run.diagnostics.total() > 0 {
         let _ = writeln!(s, "  bad input (skipped, counted):");
         for (k, n) in run.diagnostics.counts() {
@@ -52,4 +56,48 @@ pub fn render(run: &Run) -> String {
         }
     }
     s
+}
+
+/// Model criticism in a few lines: each part's held-out residual against its noise level, then
+/// each finding (the effect added and the held-out error before and after, or the pattern of an
+/// unexplained residual).
+pub fn criticism_lines(run: &Run) -> Vec<String> {
+    let mut out = Vec::new();
+    let Some(last) = run.updates.last() else { return out };
+    if last.criticism.parts.is_empty() && run.findings.is_empty() {
+        return out;
+    }
+    out.push("model criticism (held-out windows):".into());
+    for p in &last.criticism.parts {
+        let rmse = if p.rmse_m.is_finite() { format!("{:.4} m", p.rmse_m) } else { "- (one window)".into() };
+        out.push(format!("  part {:>2}: residual RMSE {rmse}, noise level {:.4} m", p.label, p.noise_rmse_m));
+    }
+    for f in &run.findings {
+        out.push(format!("  {}", finding_line(f)));
+    }
+    out
+}
+
+/// One finding in one line: the effect added and the held-out error before and after, or the
+/// pattern of an unexplained residual.
+pub fn finding_line(f: &Finding) -> String {
+    let params: Vec<String> = f.params.iter().map(|(k, v)| format!("{k} {v:.3}")).collect();
+    match f.effect {
+        Some(_) => format!(
+            "part {:>2}: added {} ({}): held-out RMSE {:.4} m -> {:.4} m, ELBO +{:.1} nats",
+            f.part,
+            f.name(),
+            params.join(", "),
+            f.rmse_before_m,
+            f.rmse_after_m,
+            f.evidence_nats
+        ),
+        None => format!(
+            "part {:>2}: unexplained residual, held-out RMSE {:.4} m ({}); the best effect gains {:.1} nats",
+            f.part,
+            f.rmse_before_m,
+            params.join(", "),
+            f.evidence_nats
+        ),
+    }
 }

@@ -15,8 +15,10 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::config::Config;
 use crate::diagnostics::Diagnostics;
+use crate::criticism::{self, Criticism, Finding};
 use crate::inference::{svi, Posterior};
-use crate::input::{self, CloudFrame, GroundTruth, InputError, Recording};
+use crate::input::{self, CloudFrame, GroundTruth, InputError, Recording, WrenchSample};
+use crate::model::effects::{EffectKind, EffectSet, LimitSpec};
 use crate::model::likelihood::{Evidence, Grid};
 use crate::perception::{self, PartGeometry, PartTracks, Perception};
 use crate::windows::{self, Window};
@@ -47,7 +49,9 @@ pub struct Timing {
     pub decode: Duration,
     pub perception: Duration,
     pub windows: Duration,
+    /// BOM-SVI, refits after an adopted effect included.
     pub inference: Duration,
+    pub criticism: Duration,
     pub total: Duration,
 }
 
@@ -58,6 +62,9 @@ pub struct Update {
     pub stamp: f64,
     pub num_windows: usize,
     pub posterior: Posterior,
+    /// Model criticism of the posterior before any effect it adopted (the posterior is then the
+    /// refit with it).
+    pub criticism: Criticism,
 }
 
 /// Everything a replay produced.
@@ -74,6 +81,11 @@ pub struct Run {
     pub updates: Vec<Update>,
     /// The posterior after the last window.
     pub posterior: Option<Posterior>,
+    /// Model criticism over the run: every effect adopted (when it was), then the last update's
+    /// unexplained residuals.
+    pub findings: Vec<Finding>,
+    /// The model's effects at the end, per part label: declared, then adopted.
+    pub effects: BTreeMap<u32, EffectSet>,
     pub ground_truth: Option<GroundTruth>,
     pub diagnostics: Diagnostics,
     pub timing: Timing,
@@ -129,19 +141,22 @@ pub fn replay(bags: &[PathBuf], cfg: &Config) -> Result<Run, ReplayError> {
     let windows = find_windows(&recording, &tracks, cfg, &mut diag);
     timing.windows = t.elapsed();
 
-    let springs = ground_truth.as_ref().map(declared_springs).unwrap_or_default();
+    let declared = ground_truth.as_ref().map(declared_effects).unwrap_or_default();
+    let mut effects = Effects { declared: declared.clone(), adopted: BTreeMap::new() };
     let t = Instant::now();
     let mut updates = Vec::new();
+    let mut findings = Vec::new();
     let mut warm = None;
     for w in 0..windows.len() {
         pb.set_message(format!("BOM-SVI after window {}/{}", w + 1, windows.len()));
-        let ev = Evidence::new(&tracks, &geometry, &windows[..=w], &recording.wrenches, &springs, &grid(cfg));
-        if let Some(fitted) = svi::fit(&ev, &cfg.model, &cfg.inference, warm.as_ref()) {
-            updates.push(Update { stamp: windows[w].end, num_windows: w + 1, posterior: fitted.posterior });
+        if let Some((fitted, criticism)) = update(&tracks, &geometry, &windows[..=w], &recording.wrenches, &mut effects, cfg, warm.as_ref()) {
+            findings = criticism.findings.clone();
+            timing.criticism += Duration::from_secs_f64(criticism.runtime_s);
+            updates.push(Update { stamp: windows[w].end, num_windows: w + 1, posterior: fitted.posterior, criticism });
             warm = Some(fitted.guide);
         }
     }
-    timing.inference = t.elapsed();
+    timing.inference = t.elapsed().saturating_sub(timing.criticism);
     pb.finish_and_clear();
 
     let parts = tracks
@@ -154,7 +169,90 @@ pub fn replay(bags: &[PathBuf], cfg: &Config) -> Result<Run, ReplayError> {
         .collect();
     let posterior = updates.last().map(|u| u.posterior.clone());
     timing.total = t0.elapsed();
-    Ok(Run { bags: bags.to_vec(), mode, parts, windows, tracks, geometry, updates, posterior, ground_truth, diagnostics: diag, timing })
+    Ok(Run { bags: bags.to_vec(), mode, parts, windows, tracks, geometry, updates, posterior, findings, effects: effects.all(), ground_truth, diagnostics: diag, timing })
+}
+
+/// The effects of the model, per part label: declared by the recording, and adopted by model
+/// criticism (kept for every later update).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Effects {
+    pub declared: BTreeMap<u32, EffectSet>,
+    pub adopted: BTreeMap<u32, EffectSet>,
+}
+
+impl Effects {
+    /// Declared and adopted together.
+    pub fn all(&self) -> BTreeMap<u32, EffectSet> {
+        let mut out = self.declared.clone();
+        for (label, set) in &self.adopted {
+            let e = out.entry(*label).or_default();
+            for kind in set.kinds() {
+                *e = e.with(kind, set.limit);
+            }
+        }
+        out
+    }
+}
+
+/// One posterior update on all windows so far: [`fit_update`], then [`criticise_update`] (which
+/// may adopt an effect and refit). Returns the final fit and the criticism, or `None` when no part
+/// was seen inside a window.
+pub fn update(
+    tracks: &PartTracks,
+    geometry: &BTreeMap<u32, PartGeometry>,
+    windows: &[Window],
+    wrenches: &[WrenchSample],
+    effects: &mut Effects,
+    cfg: &Config,
+    warm: Option<&crate::inference::guide::GuideState>,
+) -> Option<(svi::Fitted, Criticism)> {
+    let (ev, fitted) = fit_update(tracks, geometry, windows, wrenches, effects, cfg, warm)?;
+    let (criticism, refit) = criticise_update(&ev, &fitted, tracks, geometry, windows, wrenches, effects, cfg);
+    Some((refit.unwrap_or(fitted), criticism))
+}
+
+/// BOM-SVI on all windows so far with the model's current effects, warm-started from `warm`:
+/// the evidence and the fit, or `None` when no part was seen inside a window.
+pub fn fit_update(
+    tracks: &PartTracks,
+    geometry: &BTreeMap<u32, PartGeometry>,
+    windows: &[Window],
+    wrenches: &[WrenchSample],
+    effects: &Effects,
+    cfg: &Config,
+    warm: Option<&crate::inference::guide::GuideState>,
+) -> Option<(Evidence, svi::Fitted)> {
+    let ev = Evidence::new(tracks, geometry, windows, wrenches, &effects.all(), &grid(cfg));
+    let fitted = svi::fit(&ev, &cfg.model, &cfg.inference, warm)?;
+    Some((ev, fitted))
+}
+
+/// Model criticism of a fit; when it adopts an effect, the effect joins `effects.adopted` (kept
+/// for every later update) and the posterior is refitted with it, warm-started from `fitted`.
+/// Returns the criticism and the refit, if any. Both `bom replay` and `bom node` go through here
+/// (the node publishes the fit first, so criticism never delays the posterior).
+#[allow(clippy::too_many_arguments)]
+pub fn criticise_update(
+    ev: &Evidence,
+    fitted: &svi::Fitted,
+    tracks: &PartTracks,
+    geometry: &BTreeMap<u32, PartGeometry>,
+    windows: &[Window],
+    wrenches: &[WrenchSample],
+    effects: &mut Effects,
+    cfg: &Config,
+) -> (Criticism, Option<svi::Fitted>) {
+    let criticism = criticism::criticise(ev, &fitted.posterior, &effects.adopted, &cfg.model.dynamics, &cfg.criticism);
+    let adopted = criticism.adopted();
+    if adopted.is_empty() {
+        return (criticism, None);
+    }
+    for (label, kind, limit) in adopted {
+        let set = effects.adopted.entry(label).or_default();
+        *set = set.with(kind, limit);
+    }
+    let ev = Evidence::new(tracks, geometry, windows, wrenches, &effects.all(), &grid(cfg));
+    (criticism, svi::fit(&ev, &cfg.model, &cfg.inference, Some(&fitted.guide)))
 }
 
 /// The evidence grid of the configuration.
@@ -169,15 +267,25 @@ pub fn grid(cfg: &Config) -> Grid {
     }
 }
 
-/// Labels of the parts on which the recording declares a spring (contract section 3, `effects`):
-/// declared effects are part of the model from the start; undeclared ones are for model criticism
-/// to find.
-pub fn declared_springs(gt: &GroundTruth) -> Vec<u32> {
-    gt.effects
-        .iter()
-        .filter(|e| e.get("kind").and_then(|k| k.as_str()) == Some("spring"))
-        .filter_map(|e| e.get("part").and_then(|p| p.as_u64()).map(|p| p as u32))
-        .collect()
+/// The effects the recording declares per part label (contract section 3, `effects`): declared
+/// effects are part of the model from the start; undeclared ones are for model criticism to find.
+/// Kinds: `spring`, `gravity`, `quadratic_damping`, and `joint_limit` (its `lower` and `upper` keys [m of
+/// path from the first observation] anchor the stops; without either, one stop at 0 above).
+/// Other kinds (`extra_friction`: a larger Coulomb friction) need nothing beyond the base model.
+pub fn declared_effects(gt: &GroundTruth) -> BTreeMap<u32, EffectSet> {
+    let mut out: BTreeMap<u32, EffectSet> = BTreeMap::new();
+    for e in &gt.effects {
+        let Some(part) = e.get("part").and_then(|p| p.as_u64()) else { continue };
+        let Some(kind) = e.get("kind").and_then(|k| k.as_str()).and_then(EffectKind::parse) else { continue };
+        let side = |k: &str| e.get(k).and_then(|p| p.as_f64());
+        let limit = match (side("lower"), side("upper")) {
+            (None, None) => LimitSpec { lower: None, upper: Some(0.0) },
+            (lower, upper) => LimitSpec { lower, upper },
+        };
+        let set = out.entry(part as u32).or_default();
+        *set = set.with(kind, Some(limit));
+    }
+    out
 }
 
 fn find_windows(rec: &Recording, tracks: &PartTracks, cfg: &Config, diag: &mut Diagnostics) -> Vec<Window> {

@@ -24,6 +24,7 @@ use crate::config::Config;
 use crate::diagnostics::Diagnostics;
 use crate::inference::guide::GuideState;
 use crate::inference::svi;
+use crate::criticism::Criticism;
 use crate::model::likelihood::Evidence;
 use crate::input::tf::TfBuffer;
 use crate::input::{self, CloudFrame, LabeledPoints, WrenchSample};
@@ -417,11 +418,21 @@ impl Online {
 }
 
 impl Job {
-    /// Run BOM-SVI on this evidence (the node's worker task), warm-started from the previous
-    /// update's guide when given. `None` when no part was seen inside a window.
-    pub fn fit(&self, cfg: &Config, warm: Option<&GuideState>) -> Option<svi::Fitted> {
-        let ev = Evidence::new(&self.tracks, &self.geometry, &self.windows, &self.wrenches, &[], &super::grid(cfg));
-        svi::fit(&ev, &cfg.model, &cfg.inference, warm)
+    /// Update the posterior with this evidence: BOM-SVI warm-started from the previous update's
+    /// guide when given, then model criticism, which may add effects to `effects` and refit
+    /// ([`super::update`], as `bom replay`). `None` when no part was seen inside a window.
+    pub fn update(&self, cfg: &Config, warm: Option<&GuideState>, effects: &mut super::Effects) -> Option<(svi::Fitted, Criticism)> {
+        super::update(&self.tracks, &self.geometry, &self.windows, &self.wrenches, effects, cfg, warm)
+    }
+
+    /// The first half of [`Job::update`] (the node publishes its result at once): BOM-SVI.
+    pub fn fit(&self, cfg: &Config, warm: Option<&GuideState>, effects: &super::Effects) -> Option<(Evidence, svi::Fitted)> {
+        super::fit_update(&self.tracks, &self.geometry, &self.windows, &self.wrenches, effects, cfg, warm)
+    }
+
+    /// The second half: model criticism of `fitted`, and the refit when it adopts an effect.
+    pub fn criticise(&self, ev: &Evidence, fitted: &svi::Fitted, cfg: &Config, effects: &mut super::Effects) -> (Criticism, Option<svi::Fitted>) {
+        super::criticise_update(ev, fitted, &self.tracks, &self.geometry, &self.windows, &self.wrenches, effects, cfg)
     }
 }
 

@@ -5,11 +5,13 @@
 2. An rclpy node publishes three bad messages (a malformed PointCloud2, a WrenchStamped with NaN, a
    cloud in an unknown frame), then plays a bag from bags/ in real time (the recorded CDR bytes,
    on the recorded topics, paced by log time).
-3. An rclpy subscriber receives /bom/object_model (bom_msgs/ObjectModel) and
-   /bom/predicted_part_poses (geometry_msgs/PoseArray).
+3. An rclpy subscriber receives /bom/object_model (bom_msgs/ObjectModel),
+   /bom/predicted_part_poses (geometry_msgs/PoseArray) and /bom/model_criticism
+   (bom_msgs/ModelCriticism).
 4. SIGINT stops the node, which publishes its last model; that model is compared with
    `bom replay` of the same bag: same parts, same most probable joint types and parents, axes
-   within the reported spread. The node must have logged and counted each bad message.
+   within the reported spread, the same effects added by model criticism (the bag of run_interop.sh
+   has an undeclared joint limit). The node must have logged and counted each bad message.
 
 Run by .ci/run (tests/ros/run_interop.sh sets up the environment). Loopback only: the caller sets
 ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and a ROS_DOMAIN_ID of its own; both nodes honour them.
@@ -30,7 +32,7 @@ import rclpy
 from rclpy.executors import MultiThreadedExecutor
 from mcap.reader import make_reader
 
-from bom_msgs.msg import ObjectModel
+from bom_msgs.msg import ModelCriticism, ObjectModel
 from rosutil import qos, stamp
 from geometry_msgs.msg import PoseArray, WrenchStamped
 from sensor_msgs.msg import PointCloud2, PointField
@@ -108,8 +110,9 @@ def main():
         "/tf": node.create_publisher(TFMessage, "/tf", qos(depth=100)),
         "/tf_static": node.create_publisher(TFMessage, "/tf_static", qos(transient=True, depth=100)),
     }
-    models, poses = [], []
+    models, poses, criticism = [], [], []
     node.create_subscription(ObjectModel, "/bom/object_model", models.append, qos(transient=True, depth=1))
+    node.create_subscription(ModelCriticism, "/bom/model_criticism", criticism.append, qos(transient=True, depth=1))
     node.create_subscription(PoseArray, "/bom/predicted_part_poses", poses.append, qos(depth=100))
     executor = MultiThreadedExecutor()
     executor.add_node(node)
@@ -200,6 +203,11 @@ def main():
                 off = math.sqrt(max(0.0, sum(x * x for x in diff) - along * along))
                 tol = 3.0 * max(g.axis_point_sd_m, w["axis"]["point_sd_m"], 0.002)
                 check(off <= tol, f"part {child}: axis lines {off * 1000:.1f} mm apart (spread {tol * 1000:.1f} mm)")
+
+    # Model criticism: the effects the node added are those the replay added.
+    want_fx = sorted((c["part"], c["effect"]) for c in replay["criticism"] if c["effect"] != "unexplained")
+    got_fx = sorted((f.part, f.effect) for f in (criticism[-1].findings if criticism else []) if f.effect != "unexplained")
+    check(got_fx == want_fx, f"effects added by model criticism: node {got_fx} replay {want_fx}")
 
     check(len(poses) > 0, f"PoseArray received ({len(poses)})")
     n_parts = len(last.part_labels)

@@ -31,7 +31,7 @@ else
   echo "note: tcpdump (as root) not available: the loopback-only check is skipped"
 fi
 status=0
-python tests/ros/interop.py --bom target/release/bom --bag bags/mujoco/drawer.mcap || status=$?
+python tests/ros/interop.py --bom target/release/bom --bag bags/mujoco/drawer_limit_undeclared.mcap || status=$?
 for c in "${CAPS[@]}"; do
   dev=${c%%:*}; pid=${c##*:}
   kill -INT "$pid" 2>/dev/null || true

@@ -1,0 +1,306 @@
+//! Posterior-predictive residuals of one joint: the observed joint coordinates and centres of mass
+//! on the evidence grid, the joint's physics in every window (the model's
+//! [`crate::model::dynamics::simulate_window`]), its predictions from a window's first frame, and
+//! the structure of what the predictions miss.
+
+use nalgebra::{Matrix3, Vector3};
+
+use crate::inference::Posterior;
+use crate::model::dynamics::{self, DynamicsConfig, JointInWindow, KinoParams, SubtreeBody};
+use crate::model::effects::EffectSet;
+use crate::model::likelihood::{Evidence, WindowEvidence};
+use crate::model::physics::{generalised_force, JointKind};
+use crate::model::{displacement, track_coordinate, Displacement, JointParams, JointType};
+
+/// Every part's displacement from its reference configuration at every grid frame, under the MAP
+/// tree and joint types with guide-mean parameters and coordinates.
+pub fn part_transforms(post: &Posterior, frames: usize) -> Vec<Vec<Displacement<f64>>> {
+    let n = post.joints.len();
+    let mut out: Vec<Option<Vec<Displacement<f64>>>> = vec![None; n];
+    for _ in 0..=n {
+        for i in 0..n {
+            if out[i].is_some() {
+                continue;
+            }
+            let j = &post.joints[i];
+            let pre = match j.parent_index {
+                0 => Some(vec![Displacement::identity(); frames]),
+                p => out[p - 1].clone(),
+            };
+            if let Some(pre) = pre {
+                let (params, q) = (&j.mean_params[j.map_type.index()], &j.coordinates[j.map_type.index()]);
+                out[i] = Some((0..frames).map(|t| pre[t].compose(&displacement(params, q.get(t).copied().unwrap_or(0.0)))).collect());
+            }
+        }
+    }
+    out.into_iter().map(|o| o.unwrap_or_else(|| vec![Displacement::identity(); frames])).collect()
+}
+
+/// One window of one joint, as its physics sees it: the joint moved by the parent's displacement
+/// at the window's start, the child and its locked subtree there, and the window's frames at
+/// which the part was seen.
+#[derive(Debug, Clone)]
+pub struct JointWindow {
+    /// Index into [`Evidence::windows`].
+    pub index: usize,
+    pub joint: JointParams<f64>,
+    pub com: Vector3<f64>,
+    pub unit_inertia: Matrix3<f64>,
+    pub subtree: Vec<SubtreeBody>,
+    pub pushed: bool,
+    /// The window with only the frames at which the part was seen (the first is its start).
+    pub win: WindowEvidence,
+}
+
+/// One joint's observations and physics over all windows.
+#[derive(Debug, Clone)]
+pub struct JointSeries {
+    /// Part index (evidence order) and label.
+    pub part: usize,
+    pub label: u32,
+    /// The joint at guide-mean parameters, reference configuration.
+    pub params: JointParams<f64>,
+    /// The parent's displacement at every grid frame.
+    pub pre: Vec<Displacement<f64>>,
+    /// Observed joint coordinate at every grid frame [m of path] (NaN: not seen).
+    pub q: Vec<f64>,
+    pub windows: Vec<JointWindow>,
+}
+
+impl JointSeries {
+    /// The series of part `i`, or `None` when its MAP joint is rigid or it was never seen at the
+    /// start of a window.
+    pub fn new(ev: &Evidence, post: &Posterior, transforms: &[Vec<Displacement<f64>>], i: usize, cfg: &DynamicsConfig) -> Option<JointSeries> {
+        let j = &post.joints[i];
+        if !j.map_type.movable() {
+            return None;
+        }
+        let params = j.mean_params[j.map_type.index()];
+        let k = ev.len();
+        let pre: Vec<Displacement<f64>> = match j.parent_index {
+            0 => vec![Displacement::identity(); k],
+            p => transforms[p - 1].clone(),
+        };
+        let q: Vec<f64> = (0..k)
+            .map(|t| match &ev.parts[i].obs[t] {
+                Some(o) => track_coordinate(&params, &(pre[t].r.transpose() * (o.y - pre[t].t))),
+                None => f64::NAN,
+            })
+            .collect();
+        let n = post.joints.len();
+        let desc: Vec<usize> = (0..n).filter(|&m| is_descendant(post, m, i)).collect();
+        let rotate = |d: &Displacement<f64>, u: &Matrix3<f64>| d.r * u * d.r.transpose();
+        let windows: Vec<JointWindow> = ev
+            .windows
+            .iter()
+            .enumerate()
+            .filter_map(|(w, win)| {
+                let f0 = win.frames[0];
+                if q[f0].is_nan() {
+                    return None;
+                }
+                let keep: Vec<usize> = (0..win.frames.len()).filter(|&k| !q[win.frames[k]].is_nan()).collect();
+                if keep.len() < 2 {
+                    return None;
+                }
+                let mut sub = win.clone();
+                sub.frames = keep.iter().map(|&k| win.frames[k]).collect();
+                sub.frame_substep = keep.iter().map(|&k| win.frame_substep[k]).collect();
+                let own = pre[f0].compose(&displacement(&params, q[f0]));
+                let mut joint = params;
+                joint.direction = pre[f0].r * params.direction;
+                joint.point = pre[f0].apply(&params.point);
+                let subtree = desc
+                    .iter()
+                    .map(|&m| {
+                        let jm = &post.joints[m];
+                        SubtreeBody {
+                            mass: jm.kinodynamics.map_or(cfg.mass_median_kg, |kd| kd.mass.median),
+                            com: transforms[m][f0].apply(&jm.mean_params[jm.map_type.index()].com),
+                            unit_inertia: rotate(&transforms[m][f0], &ev.parts[m].unit_inertia),
+                        }
+                    })
+                    .collect();
+                Some(JointWindow {
+                    index: w,
+                    joint,
+                    com: own.apply(&params.com),
+                    unit_inertia: rotate(&own, &ev.parts[i].unit_inertia),
+                    subtree,
+                    pushed: win.pushed.is_some_and(|p| p == i || desc.contains(&p)),
+                    win: sub,
+                })
+            })
+            .collect();
+        if windows.is_empty() {
+            return None;
+        }
+        Some(JointSeries { part: i, label: ev.parts[i].label, params, pre, q, windows })
+    }
+
+    /// The physics' view of window `w` (index into `self.windows`) with `effects`.
+    pub fn joint_in_window(&self, w: usize, effects: EffectSet) -> JointInWindow<'_> {
+        let jw = &self.windows[w];
+        JointInWindow { joint: &jw.joint, com: jw.com, unit_inertia: jw.unit_inertia, subtree: jw.subtree.clone(), pushed: jw.pushed, effects }
+    }
+
+    /// Log posterior density of the standardised kinodynamic parameters `xi` given the windows
+    /// `use_window` selects (physics prior of [`dynamics::window_prior`] on the observed
+    /// coordinates, plus the `N(0, I)` prior), and its gradient.
+    pub fn log_posterior(&self, xi: &[f64], effects: EffectSet, use_window: &dyn Fn(usize) -> bool, cfg: &DynamicsConfig) -> (f64, Vec<f64>) {
+        let mut l = -0.5 * xi.iter().map(|x| x * x).sum::<f64>();
+        let mut g: Vec<f64> = xi.iter().map(|x| -x).collect();
+        for w in 0..self.windows.len() {
+            if !use_window(w) {
+                continue;
+            }
+            let (lw, gw, _) = dynamics::window_prior(&self.joint_in_window(w, effects), &self.windows[w].win, &self.q, xi, cfg);
+            l += lw;
+            for (a, b) in g.iter_mut().zip(gw) {
+                *a += b;
+            }
+        }
+        (l, g)
+    }
+
+    /// Predicted coordinates of window `w` from its start ([`JointSeries::start`]), at rest, with
+    /// parameters `xi` (the plug-in posterior-predictive mean): one per frame of the window.
+    pub fn predict(&self, w: usize, xi: &[f64], effects: EffectSet, cfg: &DynamicsConfig) -> Vec<f64> {
+        let jw = self.joint_in_window(w, effects);
+        let win = &self.windows[w].win;
+        let kp: KinoParams<f64> = dynamics::decode(self.params.joint, xi, &effects, cfg);
+        let q0 = self.start(w);
+        match dynamics::simulate_window(&jw, win, q0, &kp, cfg) {
+            Some(traj) => win.frame_substep.iter().map(|&s| traj[s]).collect(),
+            None => vec![q0; win.frames.len()],
+        }
+    }
+
+    /// The coordinate at which window `w` starts [m of path]: the median of its first three
+    /// observed frames, all before the push (windows open `margin_before_s` ahead of the force),
+    /// so that one noisy frame does not offset a whole prediction.
+    pub fn start(&self, w: usize) -> f64 {
+        let win = &self.windows[w].win;
+        let mut first: Vec<f64> = win.frames.iter().take(3).map(|&t| self.q[t]).collect();
+        first.sort_by(f64::total_cmp);
+        first[first.len() / 2]
+    }
+
+    /// The centre of mass at coordinate `q` and grid frame `t` [m, fixed frame].
+    pub fn com_at(&self, t: usize, q: f64) -> Vector3<f64> {
+        self.pre[t].compose(&displacement(&self.params, q)).apply(&self.params.com)
+    }
+
+    /// The generalised force of the measured wrench on the joint at frame `k` of window `w` (N or
+    /// N·m), 0 when the window does not push the part.
+    pub fn force_at(&self, w: usize, k: usize) -> f64 {
+        let jw = &self.windows[w];
+        if !jw.pushed {
+            return 0.0;
+        }
+        let n = jw.win.frame_substep[k].min(jw.win.force.len().saturating_sub(1));
+        if jw.win.force.is_empty() {
+            return 0.0;
+        }
+        let kind = if jw.joint.joint == JointType::Revolute { JointKind::Revolute } else { JointKind::Prismatic };
+        generalised_force(kind, &jw.joint.direction, &jw.joint.point, &jw.win.point[n], &jw.win.force[n], &jw.win.torque[n])
+    }
+}
+
+fn is_descendant(post: &Posterior, m: usize, i: usize) -> bool {
+    let mut node = post.joints[m].parent_index;
+    for _ in 0..=post.joints.len() {
+        if node == 0 {
+            return false;
+        }
+        if node == i + 1 {
+            return true;
+        }
+        node = post.joints[node - 1].parent_index;
+    }
+    false
+}
+
+/// One held-out frame: stamp \[s\], observed and predicted joint coordinate [m of path], the
+/// centre-of-mass error [m], the observed velocity [m/s of path] and the applied generalised force.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ResidualPoint {
+    pub window: usize,
+    pub t: f64,
+    /// Time since the window's start \[s\].
+    pub since_start: f64,
+    pub observed: f64,
+    pub predicted: f64,
+    pub com_error_m: f64,
+    pub velocity: f64,
+    pub force: f64,
+}
+
+/// Root-mean-square centre-of-mass error of residual points [m] (NaN when none).
+pub fn rmse(points: &[ResidualPoint]) -> f64 {
+    if points.is_empty() {
+        return f64::NAN;
+    }
+    (points.iter().map(|p| p.com_error_m * p.com_error_m).sum::<f64>() / points.len() as f64).sqrt()
+}
+
+/// The structure of a residual: its correlation with joint position, velocity, the velocity's
+/// sign, the applied force and the time since the window's start (Pearson; 0 where a quantity
+/// does not vary).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Pattern {
+    pub position: f64,
+    pub velocity: f64,
+    pub velocity_sign: f64,
+    pub force: f64,
+    pub time: f64,
+}
+
+impl Pattern {
+    pub fn of(points: &[ResidualPoint]) -> Pattern {
+        let r: Vec<f64> = points.iter().map(|p| p.observed - p.predicted).collect();
+        let corr = |x: Vec<f64>| pearson(&x, &r);
+        Pattern {
+            position: corr(points.iter().map(|p| p.observed).collect()),
+            velocity: corr(points.iter().map(|p| p.velocity).collect()),
+            velocity_sign: corr(points.iter().map(|p| if p.velocity.abs() < 1e-3 { 0.0 } else { p.velocity.signum() }).collect()),
+            force: corr(points.iter().map(|p| p.force).collect()),
+            time: corr(points.iter().map(|p| p.since_start).collect()),
+        }
+    }
+
+    /// `(name, correlation)` pairs, in the order of the fields.
+    pub fn entries(&self) -> [(&'static str, f64); 5] {
+        [
+            ("corr_position", self.position),
+            ("corr_velocity", self.velocity),
+            ("corr_velocity_sign", self.velocity_sign),
+            ("corr_force", self.force),
+            ("corr_time", self.time),
+        ]
+    }
+
+    /// The quantity the residual follows most closely.
+    pub fn strongest(&self) -> (&'static str, f64) {
+        self.entries().into_iter().max_by(|a, b| a.1.abs().total_cmp(&b.1.abs())).unwrap_or(("none", 0.0))
+    }
+}
+
+fn pearson(x: &[f64], y: &[f64]) -> f64 {
+    let n = x.len() as f64;
+    if x.len() < 3 {
+        return 0.0;
+    }
+    let (mx, my) = (x.iter().sum::<f64>() / n, y.iter().sum::<f64>() / n);
+    let (mut sxy, mut sxx, mut syy) = (0.0, 0.0, 0.0);
+    for (a, b) in x.iter().zip(y) {
+        sxy += (a - mx) * (b - my);
+        sxx += (a - mx) * (a - mx);
+        syy += (b - my) * (b - my);
+    }
+    if sxx <= 1e-18 || syy <= 1e-18 {
+        0.0
+    } else {
+        sxy / (sxx * syy).sqrt()
+    }
+}
