@@ -99,6 +99,12 @@ impl JointSeries {
                 if q[f0].is_nan() {
                     return None;
                 }
+                // A push on a descendant reaches this joint whole only through rigid joints; through
+                // a movable one (a latch on a door) the subtree is not locked and the joint's
+                // share of the push is unknown: such a window cannot be predicted here.
+                if win.pushed.is_some_and(|p| p != i && desc.contains(&p) && !rigidly_attached(post, p, i)) {
+                    return None;
+                }
                 let keep: Vec<usize> = (0..win.frames.len()).filter(|&k| !q[win.frames[k]].is_nan()).collect();
                 if keep.len() < 2 {
                     return None;
@@ -205,6 +211,22 @@ impl JointSeries {
         let kind = if jw.joint.joint == JointType::Revolute { JointKind::Revolute } else { JointKind::Prismatic };
         generalised_force(kind, &jw.joint.direction, &jw.joint.point, &jw.win.point[n], &jw.win.force[n], &jw.win.torque[n])
     }
+}
+
+/// Whether part `m`, a descendant of part `i`, hangs from it by rigid joints only (MAP types).
+fn rigidly_attached(post: &Posterior, m: usize, i: usize) -> bool {
+    let mut node = m;
+    for _ in 0..=post.joints.len() {
+        if node == i {
+            return true;
+        }
+        let j = &post.joints[node];
+        if j.map_type.movable() || j.parent_index == 0 {
+            return false;
+        }
+        node = j.parent_index - 1;
+    }
+    false
 }
 
 fn is_descendant(post: &Posterior, m: usize, i: usize) -> bool {
