@@ -85,7 +85,7 @@ fn inference(c: &mut Criterion) {
     let cfg = Config::new();
     let bag: PathBuf = "bags/sturm/left_door_001.mcap".into();
     let run = bom::pipeline::replay(std::slice::from_ref(&bag), &cfg).expect("bundled bag");
-    let ev = Evidence::new(&run.tracks, &run.geometry, &run.windows, &[], &[], &bom::pipeline::grid(&cfg));
+    let ev = Evidence::new(&run.tracks, &run.geometry, &run.windows, &[], &Default::default(), &bom::pipeline::grid(&cfg));
     let mut g = c.benchmark_group("inference");
     g.sample_size(20);
     g.bench_function("kinematic BOM-SVI posterior, real door track (left_door_001)", |b| {
