@@ -5,8 +5,9 @@
 //! **Parameters** of a movable joint, standardised `xi ~ N(0, I)` and mapped log-normally:
 //! damping `b`, Coulomb friction `mu`, the mass `m` of the child part (its inertia is `m` times the
 //! inertia per kilogram of its observed hull, [`crate::perception::PartGeometry`]), the deviation
-//! scale `sigma_d` of the coordinates from the simulated trajectory, and, where the bag declares a
-//! spring on the part, its stiffness `k` and rest position. Medians and log-sds are in
+//! scale `sigma_d` of the coordinates from the simulated trajectory, and then the parameters of the
+//! joint's effects ([`crate::model::effects`]: declared by the bag or added by model criticism;
+//! spring, joint stops, gravity, quadratic damping). Medians and log-sds are in
 //! [`DynamicsConfig`].
 //!
 //! **Physics prior** (our form of eq. 2's trajectory model): in every interaction window `w` the
