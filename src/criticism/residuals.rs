@@ -10,30 +10,21 @@ use crate::model::dynamics::{self, DynamicsConfig, JointInWindow, KinoParams, Su
 use crate::model::effects::EffectSet;
 use crate::model::likelihood::{Evidence, WindowEvidence};
 use crate::model::physics::{generalised_force, JointKind};
-use crate::model::{displacement, track_coordinate, Displacement, JointParams, JointType};
+use crate::model::{displacement, track_coordinate, tree, Displacement, JointParams, JointType};
+
+/// The MAP tree of a posterior as parent node indices (0 = fixed frame, `k + 1` = part `k`).
+fn map_parents(post: &Posterior) -> Vec<usize> {
+    post.joints.iter().map(|j| j.parent_index).collect()
+}
 
 /// Every part's displacement from its reference configuration at every grid frame, under the MAP
 /// tree and joint types with guide-mean parameters and coordinates.
 pub fn part_transforms(post: &Posterior, frames: usize) -> Vec<Vec<Displacement<f64>>> {
-    let n = post.joints.len();
-    let mut out: Vec<Option<Vec<Displacement<f64>>>> = vec![None; n];
-    for _ in 0..=n {
-        for i in 0..n {
-            if out[i].is_some() {
-                continue;
-            }
-            let j = &post.joints[i];
-            let pre = match j.parent_index {
-                0 => Some(vec![Displacement::identity(); frames]),
-                p => out[p - 1].clone(),
-            };
-            if let Some(pre) = pre {
-                let (params, q) = (&j.mean_params[j.map_type.index()], &j.coordinates[j.map_type.index()]);
-                out[i] = Some((0..frames).map(|t| pre[t].compose(&displacement(params, q.get(t).copied().unwrap_or(0.0)))).collect());
-            }
-        }
-    }
-    out.into_iter().map(|o| o.unwrap_or_else(|| vec![Displacement::identity(); frames])).collect()
+    tree::part_transforms(&map_parents(post), frames, |i, t| {
+        let j = &post.joints[i];
+        let (params, q) = (&j.mean_params[j.map_type.index()], &j.coordinates[j.map_type.index()]);
+        displacement(params, q.get(t).copied().unwrap_or(0.0))
+    })
 }
 
 /// One window of one joint, as its physics sees it: the joint moved by the parent's displacement
@@ -87,8 +78,7 @@ impl JointSeries {
                 None => f64::NAN,
             })
             .collect();
-        let n = post.joints.len();
-        let desc: Vec<usize> = (0..n).filter(|&m| is_descendant(post, m, i)).collect();
+        let desc = tree::descendants(&map_parents(post), i);
         let rotate = |d: &Displacement<f64>, u: &Matrix3<f64>| d.r * u * d.r.transpose();
         let windows: Vec<JointWindow> = ev
             .windows
@@ -225,20 +215,6 @@ fn rigidly_attached(post: &Posterior, m: usize, i: usize) -> bool {
             return false;
         }
         node = j.parent_index - 1;
-    }
-    false
-}
-
-fn is_descendant(post: &Posterior, m: usize, i: usize) -> bool {
-    let mut node = post.joints[m].parent_index;
-    for _ in 0..=post.joints.len() {
-        if node == 0 {
-            return false;
-        }
-        if node == i + 1 {
-            return true;
-        }
-        node = post.joints[node - 1].parent_index;
     }
     false
 }

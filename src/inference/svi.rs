@@ -228,44 +228,12 @@ fn categorical_elbo(l: &[f64], a: &[f64]) -> f64 {
 
 /// Transform of every part at every frame for a tree and per-part selected samples.
 fn part_transforms(parent: &[usize], chosen: &[&BlockSample], frames: usize) -> Vec<Vec<Displacement<f64>>> {
-    let n = parent.len();
-    let mut out: Vec<Option<Vec<Displacement<f64>>>> = vec![None; n];
-    // Resolve in dependency order; the tree guarantees termination.
-    while out.iter().any(|o| o.is_none()) {
-        for i in 0..n {
-            if out[i].is_some() {
-                continue;
-            }
-            let pre = if parent[i] == 0 { Some(vec![Displacement::identity(); frames]) } else { out[parent[i] - 1].clone() };
-            if let Some(pre) = pre {
-                let s = chosen[i];
-                out[i] = Some((0..frames).map(|t| pre[t].compose(&displacement(&s.params, s.q[t]))).collect());
-            }
-        }
-    }
-    out.into_iter().map(|o| o.expect("resolved")).collect()
+    tree::part_transforms(parent, frames, |i, t| displacement(&chosen[i].params, chosen[i].q[t]))
 }
 
 fn inverse(d: &Displacement<f64>) -> Displacement<f64> {
     let rt = d.r.transpose();
     Displacement { r: rt, t: -(rt * d.t) }
-}
-
-fn descendants(parent: &[usize], i: usize) -> Vec<usize> {
-    (0..parent.len())
-        .filter(|&m| {
-            let mut node = parent[m];
-            let mut steps = 0;
-            while node != 0 && steps <= parent.len() {
-                if node == i + 1 {
-                    return true;
-                }
-                node = parent[node - 1];
-                steps += 1;
-            }
-            false
-        })
-        .collect()
 }
 
 fn sample_block(ev: &Evidence, i: usize, b: &Block, theta: &[f64], model: &ModelConfig, rng: &mut ChaCha8Rng) -> BlockSample {
@@ -316,7 +284,7 @@ fn laplace_kinodynamics(ev: &Evidence, layout: &Layout, theta: &mut [f64], paren
     let transforms = part_transforms(parent, &chosen, k_frames);
     for i in 0..n {
         let pre = if parent[i] == 0 { vec![Displacement::identity(); k_frames] } else { transforms[parent[i] - 1].clone() };
-        let desc = descendants(parent, i);
+        let desc = tree::descendants(parent, i);
         for b in &layout.blocks[i] {
             let Some(kd) = b.kd else { continue };
             let mut s = mean_block(ev, i, b, theta, model);
@@ -595,7 +563,7 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
             for i in 0..n {
                 let pre: Vec<Displacement<f64>> =
                     if g_tree.parent[i] == 0 { vec![Displacement::identity(); k_frames] } else { transforms[g_tree.parent[i] - 1].clone() };
-                let desc = descendants(&g_tree.parent, i);
+                let desc = tree::descendants(&g_tree.parent, i);
                 let inv: Vec<Displacement<f64>> = (0..k_frames).map(|t| inverse(&transforms[i][t])).collect();
                 let subtree: Vec<Member> = desc
                     .iter()

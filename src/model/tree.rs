@@ -27,6 +27,8 @@
 use rand::Rng;
 use rand_distr::{Distribution, Gumbel};
 
+use super::Displacement;
+
 /// One sampled tree.
 #[derive(Debug, Clone)]
 pub struct TreeSample {
@@ -98,6 +100,47 @@ fn map_depths(logits: &[Vec<f64>]) -> Vec<usize> {
             d
         })
         .collect()
+}
+
+
+/// The parts below part `i` in the tree `parent` (`parent[m]`: 0 = fixed frame, `k + 1` = part
+/// `k`), as part indices.
+pub fn descendants(parent: &[usize], i: usize) -> Vec<usize> {
+    (0..parent.len())
+        .filter(|&m| {
+            let mut node = parent[m];
+            let mut steps = 0;
+            while node != 0 && steps <= parent.len() {
+                if node == i + 1 {
+                    return true;
+                }
+                node = parent[node - 1];
+                steps += 1;
+            }
+            false
+        })
+        .collect()
+}
+
+/// Every part's displacement from its reference configuration at each of `frames` frames in the
+/// tree `parent`: its parent's composed with its own joint's, `joint(part, frame)`. A part whose
+/// chain does not reach the fixed frame (not a tree) keeps the identity.
+pub fn part_transforms(parent: &[usize], frames: usize, joint: impl Fn(usize, usize) -> Displacement<f64>) -> Vec<Vec<Displacement<f64>>> {
+    let n = parent.len();
+    let mut out: Vec<Option<Vec<Displacement<f64>>>> = vec![None; n];
+    // Resolve in dependency order: a tree needs at most n passes.
+    for _ in 0..=n {
+        for i in 0..n {
+            if out[i].is_some() {
+                continue;
+            }
+            let pre = if parent[i] == 0 { Some(vec![Displacement::identity(); frames]) } else { out[parent[i] - 1].clone() };
+            if let Some(pre) = pre {
+                out[i] = Some((0..frames).map(|t| pre[t].compose(&joint(i, t))).collect());
+            }
+        }
+    }
+    out.into_iter().map(|o| o.unwrap_or_else(|| vec![Displacement::identity(); frames])).collect()
 }
 
 /// Whether `parent` (per part, as above) describes a tree rooted at node 0.

@@ -149,7 +149,8 @@ pub fn replay(bags: &[PathBuf], cfg: &Config) -> Result<Run, ReplayError> {
     let mut warm = None;
     for w in 0..windows.len() {
         pb.set_message(format!("BOM-SVI after window {}/{}", w + 1, windows.len()));
-        if let Some((fitted, criticism)) = update(&tracks, &geometry, &windows[..=w], &recording.wrenches, &mut effects, cfg, warm.as_ref()) {
+        let src = EvidenceSource { tracks: &tracks, geometry: &geometry, windows: &windows[..=w], wrenches: &recording.wrenches };
+        if let Some((fitted, criticism)) = update(src, &mut effects, cfg, warm.as_ref()) {
             findings = criticism.findings.clone();
             timing.criticism += Duration::from_secs_f64(criticism.runtime_s);
             updates.push(Update { stamp: windows[w].end, num_windows: w + 1, posterior: fitted.posterior, criticism });
@@ -194,51 +195,59 @@ impl Effects {
     }
 }
 
+/// What an update's evidence is built from: perception's tracks and geometry, the windows closed
+/// so far and the measured wrenches.
+#[derive(Debug, Clone, Copy)]
+pub struct EvidenceSource<'a> {
+    pub tracks: &'a PartTracks,
+    pub geometry: &'a BTreeMap<u32, PartGeometry>,
+    pub windows: &'a [Window],
+    pub wrenches: &'a [WrenchSample],
+}
+
+impl EvidenceSource<'_> {
+    /// The evidence with the model's current effects.
+    pub fn evidence(&self, effects: &Effects, cfg: &Config) -> Evidence {
+        Evidence::new(self.tracks, self.geometry, self.windows, self.wrenches, &effects.all(), &grid(cfg))
+    }
+}
+
 /// One posterior update on all windows so far: [`fit_update`], then [`criticise_update`] (which
 /// may adopt an effect and refit). Returns the final fit and the criticism, or `None` when no part
 /// was seen inside a window.
 pub fn update(
-    tracks: &PartTracks,
-    geometry: &BTreeMap<u32, PartGeometry>,
-    windows: &[Window],
-    wrenches: &[WrenchSample],
+    src: EvidenceSource<'_>,
     effects: &mut Effects,
     cfg: &Config,
     warm: Option<&crate::inference::guide::GuideState>,
 ) -> Option<(svi::Fitted, Criticism)> {
-    let (ev, fitted) = fit_update(tracks, geometry, windows, wrenches, effects, cfg, warm)?;
-    let (criticism, refit) = criticise_update(&ev, &fitted, tracks, geometry, windows, wrenches, effects, cfg);
+    let (ev, fitted) = fit_update(src, effects, cfg, warm)?;
+    let (criticism, refit) = criticise_update(src, &ev, &fitted, effects, cfg);
     Some((refit.unwrap_or(fitted), criticism))
 }
 
 /// BOM-SVI on all windows so far with the model's current effects, warm-started from `warm`:
 /// the evidence and the fit, or `None` when no part was seen inside a window.
 pub fn fit_update(
-    tracks: &PartTracks,
-    geometry: &BTreeMap<u32, PartGeometry>,
-    windows: &[Window],
-    wrenches: &[WrenchSample],
+    src: EvidenceSource<'_>,
     effects: &Effects,
     cfg: &Config,
     warm: Option<&crate::inference::guide::GuideState>,
 ) -> Option<(Evidence, svi::Fitted)> {
-    let ev = Evidence::new(tracks, geometry, windows, wrenches, &effects.all(), &grid(cfg));
+    let ev = src.evidence(effects, cfg);
     let fitted = svi::fit(&ev, &cfg.model, &cfg.inference, warm)?;
     Some((ev, fitted))
 }
 
-/// Model criticism of a fit; when it adopts an effect, the effect joins `effects.adopted` (kept
-/// for every later update) and the posterior is refitted with it, warm-started from `fitted`.
-/// Returns the criticism and the refit, if any. Both `bom replay` and `bom node` go through here
-/// (the node publishes the fit first, so criticism never delays the posterior).
-#[allow(clippy::too_many_arguments)]
+/// Model criticism of a fit to `ev` (the evidence of `src`); when it adopts an effect, the effect
+/// joins `effects.adopted` (kept for every later update) and the posterior is refitted with it,
+/// warm-started from `fitted`. Returns the criticism and the refit, if any. Both `bom replay` and
+/// `bom node` go through here (the node publishes the fit first, so criticism never delays the
+/// posterior).
 pub fn criticise_update(
+    src: EvidenceSource<'_>,
     ev: &Evidence,
     fitted: &svi::Fitted,
-    tracks: &PartTracks,
-    geometry: &BTreeMap<u32, PartGeometry>,
-    windows: &[Window],
-    wrenches: &[WrenchSample],
     effects: &mut Effects,
     cfg: &Config,
 ) -> (Criticism, Option<svi::Fitted>) {
@@ -251,8 +260,7 @@ pub fn criticise_update(
         let set = effects.adopted.entry(label).or_default();
         *set = set.with(kind, limit);
     }
-    let ev = Evidence::new(tracks, geometry, windows, wrenches, &effects.all(), &grid(cfg));
-    (criticism, svi::fit(&ev, &cfg.model, &cfg.inference, Some(&fitted.guide)))
+    (criticism, svi::fit(&src.evidence(effects, cfg), &cfg.model, &cfg.inference, Some(&fitted.guide)))
 }
 
 /// The evidence grid of the configuration.

@@ -418,21 +418,26 @@ impl Online {
 }
 
 impl Job {
+    /// The evidence this job's update is built from.
+    pub fn source(&self) -> super::EvidenceSource<'_> {
+        super::EvidenceSource { tracks: &self.tracks, geometry: &self.geometry, windows: &self.windows, wrenches: &self.wrenches }
+    }
+
     /// Update the posterior with this evidence: BOM-SVI warm-started from the previous update's
     /// guide when given, then model criticism, which may add effects to `effects` and refit
     /// ([`super::update`], as `bom replay`). `None` when no part was seen inside a window.
     pub fn update(&self, cfg: &Config, warm: Option<&GuideState>, effects: &mut super::Effects) -> Option<(svi::Fitted, Criticism)> {
-        super::update(&self.tracks, &self.geometry, &self.windows, &self.wrenches, effects, cfg, warm)
+        super::update(self.source(), effects, cfg, warm)
     }
 
     /// The first half of [`Job::update`] (the node publishes its result at once): BOM-SVI.
     pub fn fit(&self, cfg: &Config, warm: Option<&GuideState>, effects: &super::Effects) -> Option<(Evidence, svi::Fitted)> {
-        super::fit_update(&self.tracks, &self.geometry, &self.windows, &self.wrenches, effects, cfg, warm)
+        super::fit_update(self.source(), effects, cfg, warm)
     }
 
     /// The second half: model criticism of `fitted`, and the refit when it adopts an effect.
     pub fn criticise(&self, ev: &Evidence, fitted: &svi::Fitted, cfg: &Config, effects: &mut super::Effects) -> (Criticism, Option<svi::Fitted>) {
-        super::criticise_update(ev, fitted, &self.tracks, &self.geometry, &self.windows, &self.wrenches, effects, cfg)
+        super::criticise_update(self.source(), ev, fitted, effects, cfg)
     }
 }
 
