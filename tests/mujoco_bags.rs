@@ -143,10 +143,6 @@ fn criticism_finds_the_undeclared_effect(name: &str, run: &bom::pipeline::Run) {
             let most = if effect == "spring" { 0.8 } else { 1.0 / 3.0 };
             assert!(f.rmse_after_m <= most * f.rmse_before_m, "{name}: held-out RMSE {:.4} -> {:.4} m", f.rmse_before_m, f.rmse_after_m);
         }
-        // The Adroit door's closed stop acts in its last push (the observed coordinate stops while
-        // the push goes on), though the recorder declares no effect: criticism adds a stiff spring
-        // there, reported rather than asserted away.
-        None if name == "adroit_door" => {}
         None => assert!(added.is_empty(), "{name}: false alarm: {:?}", added.iter().map(|f| f.name()).collect::<Vec<_>>()),
     }
 }

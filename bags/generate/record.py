@@ -404,6 +404,35 @@ class Recorder:
             return self.data.site_xpos[mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, name)].copy()
         return self.data.geom_xpos[mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, name)].copy()
 
+    def other_joint_near_stop(self, pushed, q_start):
+        """Whether a joint other than the pushed one has moved by more than 2% of its range since
+        the push began (a spring's slow creep does not count) and is now within 30% of its range of
+        the stop it moves towards."""
+        m, d = self.model, self.data
+        for jname, q0 in q_start.items():
+            if jname == pushed:
+                continue
+            j = self.joint_id(jname)
+            lo, hi = m.jnt_range[j]
+            qv = d.qpos[m.jnt_qposadr[j]]
+            margin = 0.3 * (hi - lo)
+            moved = 0.02 * (hi - lo)
+            if (qv > q0 + moved and qv > hi - margin) or (qv < q0 - moved and qv < lo + margin):
+                return True
+        return False
+
+    def part_contacts(self):
+        """Pairs of different parts (labels, smaller first) whose collision geometry is in contact."""
+        m, d = self.model, self.data
+        pairs = set()
+        for i in range(d.ncon):
+            c = d.contact[i]
+            a = self.body_part[m.geom_bodyid[c.geom1]]
+            b = self.body_part[m.geom_bodyid[c.geom2]]
+            if a > 0 and b > 0 and a != b and c.dist < 0.0:
+                pairs.add((min(a, b), max(a, b)))
+        return sorted(pairs)
+
     def push_direction(self, jname, sign, perturb):
         m, d = self.model, self.data
         j = self.joint_id(jname)
@@ -487,10 +516,13 @@ class Recorder:
         sign = {j: None for j in joints}
         contact = np.zeros(3)
         # A careful robot lets go before a joint reaches its stop (within 30% of the range), unless
-        # the recording is about a joint limit being reached.
+        # the recording is about a joint limit being reached. It watches every joint of the object,
+        # not only the pushed one: a push on a latch can swing the door it sits on.
         stopped = set()
+        q_start = {}
         q_min = {j: math.inf for j in joints}
         q_max = {j: -math.inf for j in joints}
+        touches = {}  # (part, part) -> first time two different parts touched
         for step in range(steps + 1):
             now = step * m.opt.timestep
             force = np.zeros(3)
@@ -502,9 +534,11 @@ class Recorder:
                     if now - start < m.opt.timestep:
                         # Each push heads for the farther stop.
                         sign[jname] = 1.0 if (hi - qv) >= (qv - lo) else -1.0
+                        q_start = {j: d.qpos[m.jnt_qposadr[self.joint_id(j)]] for j in joints}
                     margin = 0.3 * (hi - lo)
                     if "limit" not in self.effects and (
-                            (sign[jname] > 0 and qv > hi - margin) or (sign[jname] < 0 and qv < lo + margin)):
+                            (sign[jname] > 0 and qv > hi - margin) or (sign[jname] < 0 and qv < lo + margin)
+                            or self.other_joint_near_stop(jname, q_start)):
                         stopped.add(k)
                         continue
                     scale = min(1.0, (now - start) / 0.2) if now < full else (1.0 if now < release else max(0.0, (end - now) / 0.2))
@@ -539,6 +573,8 @@ class Recorder:
                 next_cloud += 1.0 / self.CLOUD_HZ
                 seq += 1
             mujoco.mj_step(m, d)
+            for a, b in self.part_contacts():
+                touches.setdefault((a, b), now)
             for jname in joints:
                 qv = d.qpos[m.jnt_qposadr[self.joint_id(jname)]]
                 q_min[jname], q_max[jname] = min(q_min[jname], qv), max(q_max[jname], qv)
@@ -551,6 +587,10 @@ class Recorder:
             if q_min[jname] < lo + 0.02 * (hi - lo) or q_max[jname] > hi - 0.02 * (hi - lo):
                 self.limits_reached.append(jname)
             print(f"  {jname}: q in [{q_min[jname]:.3f}, {q_max[jname]:.3f}] of range [{lo:.3f}, {hi:.3f}]")
+        # Two parts touching is a stop too (a latch against its frame), though no joint range says so.
+        self.parts_touched = [(self.part_names[a - 1], self.part_names[b - 1], t) for (a, b), t in touches.items()]
+        for a, b, t in self.parts_touched:
+            print(f"  contact: {a} touches {b} at {t:.3f} s")
         return duration
 
 
@@ -586,6 +626,8 @@ def main(argv=None):
           f"{' (undeclared)' if args.undeclared and effects else ''}")
     if rec.limits_reached and "limit" not in effects:
         sys.exit(f"error: joint limit reached without the limit effect: {rec.limits_reached}")
+    if rec.parts_touched and "limit" not in effects:
+        sys.exit(f"error: parts touched without the limit effect (an undeclared stop): {rec.parts_touched}")
 
 
 if __name__ == "__main__":
