@@ -1,7 +1,7 @@
 //! Posterior summaries of a fitted guide: parent marginals and the most probable tree, joint-type
 //! probabilities, axes with their spread, kinodynamic parameters with their 90% intervals.
 
-use nalgebra::Vector3;
+use nalgebra::{DMatrix, Vector3};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 
@@ -9,6 +9,22 @@ use super::guide::{Block, Layout};
 use super::{AxisSummary, Estimate, JointSummary, Kinodynamics};
 use crate::model::likelihood::Evidence;
 use crate::model::{decode, dynamics, tree, JointParams, JointType, ModelConfig};
+
+/// The covariance `cov` of standardised parameters (prior `N(0, I)`) with the likelihood part of
+/// its precision divided by `c >= 1`: `((cov^-1 - I) / c + I)^-1`; `cov` itself where it is not
+/// invertible.
+fn inflated(cov: DMatrix<f64>, c: f64) -> DMatrix<f64> {
+    if c <= 1.0 {
+        return cov;
+    }
+    let d = cov.nrows();
+    let eye = DMatrix::<f64>::identity(d, d);
+    cov.clone()
+        .try_inverse()
+        .map(|p| (p - &eye) / c + &eye)
+        .and_then(|p| p.try_inverse())
+        .unwrap_or(cov)
+}
 
 /// `softmax(z)`.
 pub fn softmax(z: &[f64]) -> Vec<f64> {
@@ -19,13 +35,18 @@ pub fn softmax(z: &[f64]) -> Vec<f64> {
 }
 
 /// Summaries of every joint. `type_logits` and `parent_logits` are the (averaged) discrete
-/// guide; `samples` the number of draws used for spreads.
+/// guide; `samples` the number of draws used for spreads; `inflation[i][type]` the variance
+/// inflation factor of the physics prior's correlated deviations (see
+/// `svi::variance_inflation`), by which the kinodynamic intervals are widened: the physics part
+/// of the guide's precision (its inverse covariance minus the standard-normal prior's identity)
+/// is divided by it.
 #[allow(clippy::too_many_arguments)]
 pub fn joints(
     ev: &Evidence,
     model: &ModelConfig,
     layout: &Layout,
     theta: &[f64],
+    inflation: &[[f64; 3]],
     type_logits: &[[f64; 3]],
     parent_logits: &[Vec<f64>],
     samples: usize,
@@ -51,7 +72,7 @@ pub fn joints(
             let kinodynamics = b.kd.map(|kd| {
                 let mean = kd.mean(theta);
                 let l = kd.factor(theta);
-                let cov = &l * l.transpose();
+                let cov = inflated(&l * l.transpose(), inflation[i][axis_type.index()]);
                 let est = |j: usize, (median, sd_log): (f64, f64)| {
                     let (median, sd, q05, q95) = dynamics::log_normal_summary(median, sd_log, mean[j], cov[(j, j)].sqrt());
                     Estimate { median, sd, q05, q95 }
@@ -119,4 +140,20 @@ fn axis_summary(ev: &Evidence, i: usize, b: &Block, theta: &[f64], model: &Model
         (None, f64::NAN)
     };
     AxisSummary { joint: b.joint, direction: dir, direction_sd_deg: sd_deg, direction_q90_deg: q90, point, point_sd_m: point_sd }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// With prior precision 1 and physics precision `h`, the variance `1 / (1 + h)` becomes
+    /// `1 / (1 + h / c)`: unchanged at `c = 1`, the prior's as `c` grows.
+    #[test]
+    fn inflation_divides_the_physics_precision() {
+        let h = 99.0;
+        let cov = DMatrix::from_element(1, 1, 1.0 / (1.0 + h));
+        assert!((inflated(cov.clone(), 1.0)[(0, 0)] - 0.01).abs() < 1e-12);
+        assert!((inflated(cov.clone(), 9.0)[(0, 0)] - 1.0 / 12.0).abs() < 1e-12);
+        assert!((inflated(cov, 1e9)[(0, 0)] - 1.0).abs() < 1e-6);
+    }
 }

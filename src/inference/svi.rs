@@ -276,7 +276,17 @@ fn mean_block(ev: &Evidence, i: usize, b: &Block, theta: &[f64], model: &ModelCo
 /// steps crawl for thousands of iterations; the coordinate means, the only other input, move little
 /// once the kinematic fit has settled. `parent` and `types` give the tree and the joint type of
 /// every other part.
-fn laplace_kinodynamics(ev: &Evidence, layout: &Layout, theta: &mut [f64], parent: &[usize], types: &[usize], model: &ModelConfig, initial: bool) {
+#[allow(clippy::too_many_arguments)]
+fn laplace_kinodynamics(
+    ev: &Evidence,
+    layout: &Layout,
+    theta: &mut [f64],
+    inflation: &mut [[f64; 3]],
+    parent: &[usize],
+    types: &[usize],
+    model: &ModelConfig,
+    initial: bool,
+) {
     let n = ev.parts.len();
     let k_frames = ev.len();
     let means: Vec<Vec<BlockSample>> = (0..n).map(|i| layout.blocks[i].iter().map(|b| mean_block(ev, i, b, theta, model)).collect()).collect();
@@ -304,7 +314,13 @@ fn laplace_kinodynamics(ev: &Evidence, layout: &Layout, theta: &mut [f64], paren
             let x = laplace::mode(&mut post, x);
             theta[kd.mu..kd.mu + kd.dim].copy_from_slice(&x);
             // Covariance: the inverse negative Hessian at the mode, where it is positive definite.
+            // (The guide keeps it: the ELBO's expectations are over it. The reported intervals
+            // also allow for the deviations' correlation, see `variance_inflation`.)
             let neg_h = -laplace::hessian(&mut post, &x);
+            s.kd = Some((vec![0.0; kd.dim], x.clone()));
+            let (_, _, gq) = dynamics_pass(ev, i, &s, &pre, &desc, &chosen, &transforms, model);
+            inflation[i][b.joint.index()] = variance_inflation(ev, &gq);
+            tracing::debug!("part {} {:?}: variance inflation {:.2}", ev.parts[i].label, b.joint, inflation[i][b.joint.index()]);
             if let Some(cov) = neg_h.clone().cholesky().map(|c| c.inverse()) {
                 if let Some(l) = cov.cholesky() {
                     let l = l.l();
@@ -317,6 +333,47 @@ fn laplace_kinodynamics(ev: &Evidence, layout: &Layout, theta: &mut [f64], paren
             }
         }
     }
+}
+
+/// The variance inflation factor `(1 + rho) / (1 - rho)` of the physics prior's deviations
+/// `q_t - Psi_t`, with `rho` their lag-1 autocorrelation within windows, from `gq` (the prior's
+/// gradient with respect to each grid coordinate, `-(q_t - Psi_t) / sigma_d^2` inside a window).
+///
+/// Why: the physics prior (`q_t ~ N(Psi_t, sigma_d^2)`, frames independent) counts every frame
+/// as new evidence about the kinodynamic parameters, but where the model misses (a simulator's
+/// soft friction, an unmodelled latch) the deviations of an open-loop simulation are smooth, and
+/// consecutive frames repeat each other. For AR(1) errors the variance of an estimate grows by
+/// this factor (the effective sample size `n (1 - rho) / (1 + rho)`; e.g. Wilks, *Statistical
+/// Methods in the Atmospheric Sciences*, 2011, eq. 5.12), so the Laplace covariance's physics
+/// part is divided by it; the mode is unchanged. `rho` in `[0, 0.99]`; 1 when there are too few
+/// frames to tell. Window ends are left out: the rest between windows also acts on them.
+fn variance_inflation(ev: &Evidence, gq: &[f64]) -> f64 {
+    let series: Vec<Vec<f64>> = ev.windows.iter().map(|win| win.frames.iter().skip(1).take(win.frames.len().saturating_sub(2)).map(|&t| gq[t]).collect()).collect();
+    ar1_inflation(&series)
+}
+
+/// `(1 + rho) / (1 - rho)` for the pooled lag-1 autocorrelation `rho` of several series (see
+/// [`lag1_autocorrelation`], clamped to `[0, 0.99]`); 1 when it cannot be estimated.
+fn ar1_inflation(series: &[Vec<f64>]) -> f64 {
+    let Some(rho) = lag1_autocorrelation(series) else { return 1.0 };
+    let rho = rho.clamp(0.0, 0.99);
+    (1.0 + rho) / (1.0 - rho)
+}
+
+/// Pooled lag-1 autocorrelation about zero of several series: `sum x_k x_{k+1}` over
+/// `sqrt(sum x_k^2 * sum x_{k+1}^2)`, over the consecutive pairs within each series; `None` with
+/// fewer than 8 pairs. (Biased low by about `(1 + 3 rho) / n` on series of length `n`.)
+fn lag1_autocorrelation(series: &[Vec<f64>]) -> Option<f64> {
+    let (mut num, mut a, mut b, mut n) = (0.0, 0.0, 0.0, 0usize);
+    for x in series {
+        for k in 1..x.len() {
+            num += x[k - 1] * x[k];
+            a += x[k - 1] * x[k - 1];
+            b += x[k] * x[k];
+            n += 1;
+        }
+    }
+    (n >= 8 && a > 0.0 && b > 0.0).then(|| num / (a * b).sqrt())
 }
 
 /// The physics prior of block `k` of part `i` over all windows (dynamic mode) and its gradients:
@@ -432,10 +489,13 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
         }
         recentre(&mut theta[o..o + 3], &[0, 1, 2]);
     }
+    // Per part and joint type, the variance inflation of the physics prior's deviations at the
+    // last Laplace update (1: none, or kinematic mode); it widens the reported intervals only.
+    let mut inflation = vec![[1.0; 3]; n];
     let start_tree = tree::fixed(&start.parent);
     let start_types: Vec<usize> = start.type_score.iter().map(|s| (0..3).max_by(|&a, &b| s[a].total_cmp(&s[b])).unwrap_or(0)).collect();
     if !ev.windows.is_empty() {
-        laplace_kinodynamics(ev, &layout, &mut theta, &start.parent, &start_types, model, true);
+        laplace_kinodynamics(ev, &layout, &mut theta, &mut inflation, &start.parent, &start_types, model, true);
     }
     let mut phase = 1;
     if let Some(w) = warm {
@@ -705,7 +765,7 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
                                 .collect();
                             (structure::max_arborescence(&w), t)
                         };
-                        laplace_kinodynamics(ev, &layout, &mut theta, &parents, &types, model, false);
+                        laplace_kinodynamics(ev, &layout, &mut theta, &mut inflation, &parents, &types, model, false);
                     }
                     let k = block.len().max(1) as f64;
                     let mean = block.iter().sum::<f64>() / k;
@@ -768,7 +828,7 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
         let f: Vec<f64> = f_avg[i].iter().map(|v| v / avg_count.max(1) as f64).collect();
         tracing::debug!("part {}: conditional ELBOs (rigid, prismatic, revolute) {f:.1?}, parent logits {:.1?}", ev.parts[i].label, parent_logits[i]);
     }
-    let joints = summary::joints(ev, model, &layout, &theta, &type_logits, &parent_logits, cfg.summary_samples, &mut rng);
+    let joints = summary::joints(ev, model, &layout, &theta, &inflation, &type_logits, &parent_logits, cfg.summary_samples, &mut rng);
     let posterior = Posterior { joints, elbo, iterations: iters, runtime_s: started.elapsed().as_secs_f64() };
     let labels = ev.parts.iter().map(|p| p.label).collect();
     Some(Fitted { posterior, guide: GuideState { labels, times: ev.times.clone(), layout, theta } })
@@ -791,6 +851,35 @@ fn recentre(logits: &mut [f64], idx: &[usize]) {
 
 #[cfg(test)]
 mod tests {
+    /// The lag-1 autocorrelation of AR(1) series of the length of a window's deviations is
+    /// recovered to its small-sample bias; the inflation factor follows it.
+    #[test]
+    fn ar1_inflation_recovers_the_autocorrelation() {
+        use rand::SeedableRng;
+        use rand_distr::{Distribution, StandardNormal};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        for rho in [0.0, 0.5, 0.9] {
+            let series: Vec<Vec<f64>> = (0..40)
+                .map(|_| {
+                    let mut x: f64 = StandardNormal.sample(&mut rng);
+                    (0..50)
+                        .map(|_| {
+                            let e: f64 = StandardNormal.sample(&mut rng);
+                            x = rho * x + (1.0 - rho * rho).sqrt() * e;
+                            x
+                        })
+                        .collect()
+                })
+                .collect();
+            let r = super::lag1_autocorrelation(&series).expect("enough pairs");
+            let bias = (1.0 + 3.0 * rho) / 50.0;
+            assert!((r - rho).abs() < bias + 0.03, "rho {rho}: estimated {r:.3}");
+            let c = super::ar1_inflation(&series);
+            assert!(c >= 1.0 && (rho == 0.0 || c > 0.8 * (1.0 + rho - bias) / (1.0 - rho + bias)), "rho {rho}: inflation {c:.2}");
+        }
+        assert_eq!(super::ar1_inflation(&[vec![1.0, 2.0, 3.0]]), 1.0, "too few values");
+    }
+
     use super::*;
     use crate::model::likelihood::{PartSeries, PositionObs, RotationObs};
 
