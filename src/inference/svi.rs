@@ -344,8 +344,9 @@ fn laplace_kinodynamics(
 /// soft friction, an unmodelled latch) the deviations of an open-loop simulation are smooth, and
 /// consecutive frames repeat each other. For AR(1) errors the variance of an estimate grows by
 /// this factor (the effective sample size `n (1 - rho) / (1 + rho)`; e.g. Wilks, *Statistical
-/// Methods in the Atmospheric Sciences*, 3rd ed., 2011, ch. 5), so the Laplace covariance's physics
-/// part is divided by it; the mode is unchanged. `rho` in `[0, 0.99]`; 1 when there are too few
+/// Methods in the Atmospheric Sciences*, 3rd ed., 2011, ch. 5), so the reported intervals
+/// ([`summary::joints`]) divide the physics part of the Laplace precision by it; the mode and the
+/// guide are unchanged. `rho` in `[0, 0.99]`; 1 when there are too few
 /// frames to tell. Window ends are left out: the rest between windows also acts on them.
 fn variance_inflation(ev: &Evidence, gq: &[f64]) -> f64 {
     let series: Vec<Vec<f64>> = ev.windows.iter().map(|win| win.frames.iter().skip(1).take(win.frames.len().saturating_sub(2)).map(|&t| gq[t]).collect()).collect();
