@@ -1,4 +1,4 @@
-//! `bom node`: the live ROS 2 node. The same stages as `bom replay` ([`pipeline::online`]) fed by
+//! `bom node`: the live ROS 2 node. The same stages as `bom replay` ([`crate::pipeline::online`]) fed by
 //! DDS instead of a bag, on `ros2-client` (native Rust DDS) and `tokio`.
 //!
 //! Tasks:

@@ -97,9 +97,9 @@ impl Finding {
 #[derive(Debug, Clone, PartialEq)]
 pub struct PartCriticism {
     pub label: u32,
-    /// Held-out centre-of-mass RMSE of the current model [m] (NaN with a single window).
+    /// Held-out centre-of-mass RMSE of the current model \[m\] (NaN with a single window).
     pub rmse_m: f64,
-    /// The RMSE the position noise alone would give [m].
+    /// The RMSE the position noise alone would give \[m\].
     pub noise_rmse_m: f64,
     pub pattern: Pattern,
     pub residuals: Vec<ResidualPoint>,

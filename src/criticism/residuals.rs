@@ -220,7 +220,7 @@ fn rigidly_attached(post: &Posterior, m: usize, i: usize) -> bool {
 }
 
 /// One held-out frame: stamp \[s\], observed and predicted joint coordinate [m of path], the
-/// centre-of-mass error [m], the observed velocity [m/s of path] and the applied generalised force.
+/// centre-of-mass error \[m\], the observed velocity \[m/s of path\] and the applied generalised force.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ResidualPoint {
     pub window: usize,
@@ -234,7 +234,7 @@ pub struct ResidualPoint {
     pub force: f64,
 }
 
-/// Root-mean-square centre-of-mass error of residual points [m] (NaN when none).
+/// Root-mean-square centre-of-mass error of residual points \[m\] (NaN when none).
 pub fn rmse(points: &[ResidualPoint]) -> f64 {
     if points.is_empty() {
         return f64::NAN;

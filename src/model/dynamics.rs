@@ -103,7 +103,7 @@ pub struct KinoParams<T: Real> {
 }
 
 /// Decode standardised `xi` (length [`num_params`]) for a movable `joint` with `effects`; the
-/// layout is the base four, then each effect's in [`EffectKind`] order.
+/// layout is the base four, then each effect's in [`EffectKind`](crate::model::effects::EffectKind) order.
 pub fn decode<T: Real>(joint: JointType, xi: &[T], effects: &EffectSet, cfg: &DynamicsConfig) -> KinoParams<T> {
     let k = kind_index(joint);
     let e = &cfg.effects;

@@ -16,7 +16,7 @@
 //! Prior: the paper's is uniform over the `(N + 1)^(N - 1)` rooted trees (Cayley's formula, paper
 //! §3.2). bom's is a *contact prior*, `p(G) = prod_i w(i, parent_i) / Z`: a joint attaches a part to
 //! a part it touches, the more probably the larger their contact: `w(i, j) = A_ij + a_min` with
-//! `A_ij` the contact area of the two surfaces [m²], and the fixed frame — everything not
+//! `A_ij` the contact area of the two surfaces \[m²\], and the fixed frame — everything not
 //! segmented, whose surface is unknown — counts as a contact of `contact_world_m2`. Without it a
 //! door is as probably attached to the fixed frame as to the static cabinet that carries it (the
 //! motion cannot tell them apart), and half of its parent probability would sit on the wrong
