@@ -852,6 +852,9 @@ fn recentre(logits: &mut [f64], idx: &[usize]) {
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+    use crate::model::likelihood::{PartSeries, PositionObs, RotationObs};
+
     /// The lag-1 autocorrelation of AR(1) series of the length of a window's deviations is
     /// recovered to its small-sample bias; the inflation factor follows it.
     #[test]
@@ -872,17 +875,14 @@ mod tests {
                         .collect()
                 })
                 .collect();
-            let r = super::lag1_autocorrelation(&series).expect("enough pairs");
+            let r = lag1_autocorrelation(&series).expect("enough pairs");
             let bias = (1.0 + 3.0 * rho) / 50.0;
             assert!((r - rho).abs() < bias + 0.03, "rho {rho}: estimated {r:.3}");
-            let c = super::ar1_inflation(&series);
+            let c = ar1_inflation(&series);
             assert!(c >= 1.0 && (rho == 0.0 || c > 0.8 * (1.0 + rho - bias) / (1.0 - rho + bias)), "rho {rho}: inflation {c:.2}");
         }
-        assert_eq!(super::ar1_inflation(&[vec![1.0, 2.0, 3.0]]), 1.0, "too few values");
+        assert_eq!(ar1_inflation(&[vec![1.0, 2.0, 3.0]]), 1.0, "too few values");
     }
-
-    use super::*;
-    use crate::model::likelihood::{PartSeries, PositionObs, RotationObs};
 
     /// The dual-number gradient of a block's log-likelihood matches central finite differences.
     #[test]
