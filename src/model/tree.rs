@@ -102,7 +102,6 @@ fn map_depths(logits: &[Vec<f64>]) -> Vec<usize> {
         .collect()
 }
 
-
 /// The parts below part `i` in the tree `parent` (`parent[m]`: 0 = fixed frame, `k + 1` = part
 /// `k`), as part indices.
 pub fn descendants(parent: &[usize], i: usize) -> Vec<usize> {
