@@ -193,6 +193,93 @@ impl PartModel {
     }
 }
 
+/// Model points remembered per frame point by [`Correspondences`].
+const CACHED_NEIGHBOURS: usize = 4;
+
+/// The nearest model points of one frame's points, remembered across the many registrations of
+/// that frame against one model (every ICP iteration of every hypothesis, their costs, the noise
+/// scale): the k-d tree search is most of perception's time, and ICP iterations and nearby
+/// hypotheses move the points by less than the spacing of the model's points.
+///
+/// Exact, by the triangle inequality: a frame point searched at `y0` remembers its
+/// `CACHED_NEIGHBOURS` nearest model points, the farthest of them at distance `dk`. At `y`, a
+/// distance `δ = |y - y0|` away, every other model point is at least `dk - δ` from `y`, so the
+/// nearest of the remembered points is the nearest of all while it lies within `dk - δ`; the tree
+/// is searched again only when it does not. The borrow of the model keeps it from growing while
+/// the answers are in use.
+pub struct Correspondences<'m> {
+    model: &'m PartModel,
+    /// Per frame point: where it was searched, and the remembered model points with their
+    /// distances from there (ascending) \[m\].
+    cache: Vec<Option<Remembered>>,
+    /// Tree searches made and answers reused (diagnostics).
+    pub searched: usize,
+    pub reused: usize,
+}
+
+#[derive(Debug, Clone)]
+struct Remembered {
+    at: Vector3<f64>,
+    len: usize,
+    items: [u32; CACHED_NEIGHBOURS],
+    distances: [f64; CACHED_NEIGHBOURS],
+}
+
+impl Remembered {
+    /// The nearest model point to `y` if the remembered points prove it (see [`Correspondences`]).
+    fn nearest(&self, y: &Vector3<f64>, points: &[Vector3<f64>]) -> Option<(usize, f64)> {
+        let moved = (y - self.at).norm();
+        // Every model point but the first remembered was at least `distances[1]` away: the first
+        // is still the nearest if it is within `distances[1] - moved` (the common case, one distance).
+        let j0 = self.items[0] as usize;
+        let d0 = (y - points[j0]).norm_squared();
+        let second = if self.len > 1 { self.distances[1] } else { f64::INFINITY };
+        let reach = second - moved;
+        if reach > 0.0 && d0 <= reach * reach {
+            return Some((j0, d0));
+        }
+        // Else the nearest remembered point, if within `dk - moved` (any other point is farther).
+        let last = if self.len < CACHED_NEIGHBOURS { f64::INFINITY } else { self.distances[self.len - 1] };
+        let reach = last - moved;
+        let (j, d2) = (0..self.len)
+            .map(|k| (self.items[k] as usize, (y - points[self.items[k] as usize]).norm_squared()))
+            .min_by(|a, b| a.1.total_cmp(&b.1))?;
+        (reach > 0.0 && d2 <= reach * reach).then_some((j, d2))
+    }
+}
+
+impl<'m> Correspondences<'m> {
+    /// Correspondences of a frame of `n` points against `model`.
+    pub fn new(model: &'m PartModel, n: usize) -> Self {
+        Correspondences { model, cache: vec![None; n], searched: 0, reused: 0 }
+    }
+
+    /// Nearest model point to frame point `i`, now at `y` (reference configuration), within
+    /// `gate` \[m\]: its index and squared distance; the same answer as [`PartModel::nearest`].
+    pub fn nearest(&mut self, i: usize, y: &Vector3<f64>, gate: f64) -> Option<(usize, f64)> {
+        let points = &self.model.points;
+        let found = match self.cache[i].as_ref().and_then(|r| r.nearest(y, points)) {
+            Some(found) => {
+                self.reused += 1;
+                found
+            }
+            None => {
+                self.searched += 1;
+                let nn = self.model.tree.nearest_n::<SquaredEuclidean>(&[y.x, y.y, y.z], CACHED_NEIGHBOURS);
+                let mut r = Remembered { at: *y, len: nn.len(), items: [0; CACHED_NEIGHBOURS], distances: [0.0; CACHED_NEIGHBOURS] };
+                for (k, m) in nn.iter().enumerate() {
+                    r.items[k] = m.item as u32;
+                    r.distances[k] = m.distance.sqrt();
+                }
+                let first = nn.first()?;
+                self.cache[i] = Some(r);
+                (first.item as usize, (y - points[first.item as usize]).norm_squared())
+            }
+        };
+        (found.1 <= gate * gate).then_some(found)
+    }
+}
+
 /// Scales of the Cauchy kernels \[m\].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Scales {
@@ -217,14 +304,15 @@ pub struct FramePoints<'a> {
 
 /// Robust registration cost of `frame` under `pose` (reference -> fixed frame) and the fraction
 /// of points matched within the fine gate.
-pub fn cost(model: &PartModel, frame: &FramePoints<'_>, pose: &Isometry3<f64>, sc: Scales, cfg: &PerceptionConfig) -> (f64, f64) {
+pub fn cost(nn: &mut Correspondences<'_>, frame: &FramePoints<'_>, pose: &Isometry3<f64>, sc: Scales, cfg: &PerceptionConfig) -> (f64, f64) {
+    let model = nn.model;
     let inv = pose.inverse();
     let (spl, spp, wpp, gate) = (sc.plane, sc.point, cfg.point_to_point_weight, cfg.fine_gate_m);
     let far = (1.0 + (gate / spl).powi(2)).ln() + wpp * (1.0 + (gate / spp).powi(2)).ln();
     let (mut c, mut matched) = (0.0, 0usize);
-    for (x, w) in frame.points.iter().zip(frame.weights) {
+    for (i, (x, w)) in frame.points.iter().zip(frame.weights).enumerate() {
         let y = inv * nalgebra::Point3::from(*x);
-        let term = match model.nearest(&y.coords, gate) {
+        let term = match nn.nearest(i, &y.coords, gate) {
             Some((j, d2)) => {
                 matched += 1;
                 (1.0 + model.residual2(j, &y.coords) / (spl * spl)).ln() + wpp * (1.0 + d2 / (spp * spp)).ln()
@@ -240,52 +328,47 @@ pub fn cost(model: &PartModel, frame: &FramePoints<'_>, pose: &Isometry3<f64>, s
 /// last iteration (information about the increment `(w, u)`, `y -> y + w x y + u`, in the
 /// reference configuration), or `None` when too few points match.
 pub fn icp(
-    model: &PartModel,
+    nn: &mut Correspondences<'_>,
     frame: &FramePoints<'_>,
     start: &Isometry3<f64>,
     sc: Scales,
     cfg: &PerceptionConfig,
 ) -> Option<(Isometry3<f64>, Matrix6<f64>)> {
-    let (spl, spp, wpp) = (sc.plane, sc.point, cfg.point_to_point_weight);
+    let model = nn.model;
+    let (inv_spl2, inv_spp2, wpp) = ((sc.plane * sc.plane).recip(), (sc.point * sc.point).recip(), cfg.point_to_point_weight);
     let mut pose = *start;
     let mut last = None;
     let iters = cfg.icp_iterations.max(1);
     for it in 0..iters {
         let gate = if it < iters / 2 { cfg.match_gate_m } else { cfg.fine_gate_m };
         let inv = pose.inverse();
-        let (mut a, mut b, mut matched) = (Matrix6::<f64>::zeros(), Vector6::<f64>::zeros(), 0usize);
-        for (x, w) in frame.points.iter().zip(frame.weights) {
-            let y = (inv * nalgebra::Point3::from(*x)).coords;
-            let Some((j, d2)) = model.nearest(&y, gate) else { continue };
+        // As a matrix: this transforms every point of every iteration.
+        let (rot, shift) = (inv.rotation.to_rotation_matrix().into_inner(), inv.translation.vector);
+        let (mut sums, mut matched) = (NormalEquations::default(), 0usize);
+        for (i, (x, w)) in frame.points.iter().zip(frame.weights).enumerate() {
+            let y = rot * x + shift;
+            let Some((j, d2)) = nn.nearest(i, &y, gate) else { continue };
             matched += 1;
-            let m = model.points[j];
-            let r = y - m;
-            let wc = w / (1.0 + model.residual2(j, &y) / (spl * spl)) / (spl * spl);
+            let r = y - model.points[j];
             // The weaker point-to-point term (edges fix a plane's position within it).
-            let mut wp = w * wpp / (1.0 + d2 / (spp * spp)) / (spp * spp);
+            let mut wp = w * wpp / (1.0 + d2 * inv_spp2) * inv_spp2;
             match model.normals[j] {
                 // Point to plane: d(n . (y' - m))/d(w, u) = [y x n, n].
                 Some(n) => {
+                    let e = r.dot(&n);
+                    let wc = w / (1.0 + e * e * inv_spl2) * inv_spl2;
                     let yn = y.cross(&n);
-                    let jr = [yn.x, yn.y, yn.z, n.x, n.y, n.z];
-                    let e = r.dot(&n) * wc;
-                    // Rank-one update by hand: nalgebra's generic outer product is the hot spot.
-                    for i in 0..6 {
-                        let wi = jr[i] * wc;
-                        for j in 0..6 {
-                            a[(i, j)] += wi * jr[j];
-                        }
-                        b[i] += jr[i] * e;
-                    }
+                    sums.add_plane(&[yn.x, yn.y, yn.z, n.x, n.y, n.z], e, wc);
                 }
                 // No plane here: the full distance at the plane's scale.
-                None => wp += wc,
+                None => wp += w / (1.0 + d2 * inv_spl2) * inv_spl2,
             }
-            add_point_to_point(&mut a, &mut b, &y, &r, wp);
+            sums.add_point(&y, &r, wp);
         }
         if matched < cfg.min_points.max(6) {
             return None;
         }
+        let (a, b) = sums.solve_form();
         let damped = a + Matrix6::identity() * (1e-4 * a.trace() / 6.0 + 1e-12);
         let dx = -(damped.cholesky()?.solve(&b));
         let delta = Isometry3::from_parts(
@@ -301,39 +384,101 @@ pub fn icp(
     last.map(|a| (pose, a))
 }
 
-/// Add `wp` times the point-to-point term of one match to the normal equations: with the
-/// Jacobian `J = d(y + w x y + u)/d(w, u) = [-[y]x, I]`, `JᵀJ = [[|y|²I - yyᵀ, [y]x], [-[y]x, I]]`
-/// and `Jᵀr = [y x r, r]` (closed forms: this runs for every point of every ICP iteration).
-fn add_point_to_point(a: &mut Matrix6<f64>, b: &mut Vector6<f64>, y: &Vector3<f64>, r: &Vector3<f64>, wp: f64) {
-    let yy = y.norm_squared();
-    let s = skew(y);
-    for i in 0..3 {
-        for j in 0..3 {
-            let d = if i == j { yy } else { 0.0 };
-            a[(i, j)] += wp * (d - y[i] * y[j]);
-            a[(i, j + 3)] += wp * s[(i, j)];
-            a[(i + 3, j)] -= wp * s[(i, j)];
+/// The Gauss-Newton normal equations `A dx = -b` of one ICP iteration, accumulated as sums
+/// (this runs for every point of every iteration, so only what differs per point is summed).
+///
+/// Point to plane, per match: `A += w jᵀj`, `b += w e j` with `j = [y x n, n]` (upper triangle
+/// only: `A` is symmetric). Point to point: with `J = d(y + w x y + u)/d(w, u) = [-[y]x, I]`,
+/// `JᵀJ = [[|y|²I - yyᵀ, [y]x], [-[y]x, I]]` and `Jᵀr = [y x r, r]`, so the sums of `wp`,
+/// `wp y`, `wp yyᵀ`, `wp r` and `wp y x r` give its part of `A` and `b` in closed form.
+#[derive(Debug, Default)]
+struct NormalEquations {
+    /// Point to plane: `Σ w jᵀj` (upper triangle, row by row) and `Σ w e j`.
+    plane: [f64; 21],
+    plane_b: [f64; 6],
+    /// Point to point: `Σ wp`, `Σ wp y`, `Σ wp yyᵀ` (xx, xy, xz, yy, yz, zz), `Σ wp r`, `Σ wp y x r`.
+    w: f64,
+    wy: Vector3<f64>,
+    wyy: [f64; 6],
+    wr: Vector3<f64>,
+    wyr: Vector3<f64>,
+}
+
+impl NormalEquations {
+    /// One point-to-plane match: Jacobian row `j`, residual `e` \[m\], weight `w` \[1/m²\].
+    fn add_plane(&mut self, j: &[f64; 6], e: f64, w: f64) {
+        let mut k = 0;
+        for r in 0..6 {
+            let wr = w * j[r];
+            for c in r..6 {
+                self.plane[k] += wr * j[c];
+                k += 1;
+            }
+            self.plane_b[r] += wr * e;
         }
-        a[(i + 3, i + 3)] += wp;
     }
-    let yr = y.cross(r);
-    for i in 0..3 {
-        b[i] += wp * yr[i];
-        b[i + 3] += wp * r[i];
+
+    /// One point-to-point match of `y` (reference configuration) with residual `r` \[m\] and
+    /// weight `wp` \[1/m²\].
+    fn add_point(&mut self, y: &Vector3<f64>, r: &Vector3<f64>, wp: f64) {
+        self.w += wp;
+        self.wy += wp * y;
+        let wy = wp * y;
+        self.wyy[0] += wy.x * y.x;
+        self.wyy[1] += wy.x * y.y;
+        self.wyy[2] += wy.x * y.z;
+        self.wyy[3] += wy.y * y.y;
+        self.wyy[4] += wy.y * y.z;
+        self.wyy[5] += wy.z * y.z;
+        self.wr += wp * r;
+        self.wyr += wy.cross(r);
+    }
+
+    /// `(A, b)` with `A` (6x6, symmetric) about the increment `(w, u)`.
+    fn solve_form(&self) -> (Matrix6<f64>, Vector6<f64>) {
+        let mut a = Matrix6::zeros();
+        let mut k = 0;
+        for r in 0..6 {
+            for c in r..6 {
+                a[(r, c)] = self.plane[k];
+                a[(c, r)] = self.plane[k];
+                k += 1;
+            }
+        }
+        let s = &self.wyy;
+        let yy = Matrix3::new(s[0], s[1], s[2], s[1], s[3], s[4], s[2], s[4], s[5]);
+        let rot = Matrix3::identity() * yy.trace() - yy;
+        let cross = skew(&self.wy);
+        for r in 0..3 {
+            for c in 0..3 {
+                a[(r, c)] += rot[(r, c)];
+                a[(r, c + 3)] += cross[(r, c)];
+                a[(r + 3, c)] -= cross[(r, c)];
+            }
+            a[(r + 3, r + 3)] += self.w;
+        }
+        let mut b = Vector6::from_column_slice(&self.plane_b);
+        for r in 0..3 {
+            b[r] += self.wyr[r];
+            b[r + 3] += self.wr[r];
+        }
+        (a, b)
     }
 }
 
 /// Robust noise scale of a fit: 1.4826 x the median absolute point-to-plane distance of the points
 /// matched within the fine gate.
-fn residual_scale(model: &PartModel, frame: &FramePoints<'_>, pose: &Isometry3<f64>, cfg: &PerceptionConfig) -> Option<f64> {
+fn residual_scale(nn: &mut Correspondences<'_>, frame: &FramePoints<'_>, pose: &Isometry3<f64>, cfg: &PerceptionConfig) -> Option<f64> {
+    let model = nn.model;
     let inv = pose.inverse();
     let mut r: Vec<f64> = frame
         .points
         .iter()
-        .filter_map(|x| {
+        .enumerate()
+        .filter_map(|(i, x)| {
             let y = (inv * nalgebra::Point3::from(*x)).coords;
             // Per axis: a distance without a plane spreads over three directions.
-            model.nearest(&y, cfg.fine_gate_m).map(|(j, _)| {
+            nn.nearest(i, &y, cfg.fine_gate_m).map(|(j, _)| {
                 let r2 = model.residual2(j, &y);
                 if model.normals[j].is_some() { r2.sqrt() } else { (r2 / 3.0).sqrt() }
             })
@@ -396,11 +541,12 @@ impl Tracker {
         let shifted = Translation3::from(centroid - self.centroid.unwrap_or(centroid)) * self.pose;
         self.centroid = Some(centroid);
         let mut info = None;
+        let mut nn = Correspondences::new(&self.model, frame.points.len());
         for start in [self.pose, predicted, shifted] {
-            if let Some((p, a)) = icp(&self.model, frame, &start, self.scales, cfg) {
+            if let Some((p, a)) = icp(&mut nn, frame, &start, self.scales, cfg) {
                 if info.is_none() {
                     // The noise of this frame's points, from the residuals of the first fit.
-                    if let Some(s) = residual_scale(&self.model, frame, &p, cfg) {
+                    if let Some(s) = residual_scale(&mut nn, frame, &p, cfg) {
                         self.scales = Scales::new(s, cfg);
                     }
                 }
@@ -410,7 +556,7 @@ impl Tracker {
         }
         let mut best: Option<(f64, f64, Isometry3<f64>)> = None;
         for (p, penalty) in hyps {
-            let (c, matched) = cost(&self.model, frame, &p, self.scales, cfg);
+            let (c, matched) = cost(&mut nn, frame, &p, self.scales, cfg);
             if best.as_ref().is_none_or(|b| c + penalty < b.0) {
                 best = Some((c + penalty, matched, p));
             }
@@ -422,7 +568,7 @@ impl Tracker {
         self.previous = self.pose;
         self.pose = pose;
         // The information at the chosen pose (one Gauss-Newton pass from it, no step kept).
-        let information = icp_information(&self.model, frame, &pose, self.scales, cfg).or(info).unwrap_or_else(Matrix6::zeros);
+        let information = icp_information(&mut nn, frame, &pose, self.scales, cfg).or(info).unwrap_or_else(Matrix6::zeros);
         let inv = pose.inverse();
         let grow: Vec<Vector3<f64>> = frame
             .points
@@ -444,25 +590,26 @@ impl Tracker {
     /// registration, against the model of that time): the pose moves only if that explains the
     /// points better by more than `refine_penalty_nats`. Returns the pose and its information.
     pub fn refine(&self, frame: &FramePoints<'_>, pose: &Isometry3<f64>, cfg: &PerceptionConfig) -> Option<Registered> {
-        let scales = residual_scale(&self.model, frame, pose, cfg).map(|s| Scales::new(s, cfg)).unwrap_or(self.scales);
+        let mut nn = Correspondences::new(&self.model, frame.points.len());
+        let scales = residual_scale(&mut nn, frame, pose, cfg).map(|s| Scales::new(s, cfg)).unwrap_or(self.scales);
         let fine = PerceptionConfig { match_gate_m: cfg.fine_gate_m, ..cfg.clone() };
-        let (c0, m0) = cost(&self.model, frame, pose, scales, cfg);
+        let (c0, m0) = cost(&mut nn, frame, pose, scales, cfg);
         let mut best = (c0, m0, *pose);
-        if let Some((p, _)) = icp(&self.model, frame, pose, scales, &fine) {
-            let (c, m) = cost(&self.model, frame, &p, scales, cfg);
+        if let Some((p, _)) = icp(&mut nn, frame, pose, scales, &fine) {
+            let (c, m) = cost(&mut nn, frame, &p, scales, cfg);
             if c + cfg.refine_penalty_nats < best.0 {
                 best = (c, m, p);
             }
         }
-        let information = icp_information(&self.model, frame, &best.2, scales, cfg)?;
+        let information = icp_information(&mut nn, frame, &best.2, scales, cfg)?;
         Some(Registered { pose: best.2, information, matched: best.1 })
     }
 }
 
 /// The Gauss-Newton matrix of the registration cost at `pose` (fine gate).
-fn icp_information(model: &PartModel, frame: &FramePoints<'_>, pose: &Isometry3<f64>, sc: Scales, cfg: &PerceptionConfig) -> Option<Matrix6<f64>> {
+fn icp_information(nn: &mut Correspondences<'_>, frame: &FramePoints<'_>, pose: &Isometry3<f64>, sc: Scales, cfg: &PerceptionConfig) -> Option<Matrix6<f64>> {
     let one = PerceptionConfig { icp_iterations: 1, match_gate_m: cfg.fine_gate_m, ..cfg.clone() };
-    icp(model, frame, pose, sc, &one).map(|(_, a)| a)
+    icp(nn, frame, pose, sc, &one).map(|(_, a)| a)
 }
 
 #[cfg(test)]
@@ -471,15 +618,63 @@ mod tests {
     use rand::{Rng, SeedableRng};
 
     #[test]
-    fn closed_form_point_to_point_term_is_jt_j() {
-        let (y, r, wp) = (Vector3::new(0.3, -0.7, 1.1), Vector3::new(0.01, 0.02, -0.03), 2.5);
-        let mut jp = nalgebra::Matrix3x6::<f64>::zeros();
-        jp.fixed_view_mut::<3, 3>(0, 0).copy_from(&(-skew(&y)));
-        jp.fixed_view_mut::<3, 3>(0, 3).copy_from(&Matrix3::identity());
-        let (mut a, mut b) = (Matrix6::zeros(), Vector6::zeros());
-        add_point_to_point(&mut a, &mut b, &y, &r, wp);
-        assert!((a - jp.transpose() * jp * wp).norm() < 1e-12, "{a}");
-        assert!((b - jp.transpose() * r * wp).norm() < 1e-12, "{b}");
+    fn normal_equations_sum_jt_j() {
+        // Against the explicit Jacobians: point to plane `[y x n, n]`, point to point `[-[y]x, I]`.
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+        let (mut sums, mut a, mut b) = (NormalEquations::default(), Matrix6::zeros(), Vector6::zeros());
+        for _ in 0..5 {
+            let y = Vector3::from_fn(|_, _| rng.random_range(-1.0..1.0));
+            let r = Vector3::from_fn(|_, _| rng.random_range(-0.05..0.05));
+            let n = Vector3::from_fn(|_, _| rng.random_range(-1.0..1.0)).normalize();
+            let (wc, wp) = (rng.random_range(0.1..3.0), rng.random_range(0.1..3.0));
+            let yn = y.cross(&n);
+            let jr = Vector6::new(yn.x, yn.y, yn.z, n.x, n.y, n.z);
+            sums.add_plane(&[yn.x, yn.y, yn.z, n.x, n.y, n.z], r.dot(&n), wc);
+            a += jr * jr.transpose() * wc;
+            b += jr * r.dot(&n) * wc;
+            let mut jp = nalgebra::Matrix3x6::<f64>::zeros();
+            jp.fixed_view_mut::<3, 3>(0, 0).copy_from(&(-skew(&y)));
+            jp.fixed_view_mut::<3, 3>(0, 3).copy_from(&Matrix3::identity());
+            sums.add_point(&y, &r, wp);
+            a += jp.transpose() * jp * wp;
+            b += jp.transpose() * r * wp;
+        }
+        let (sa, sb) = sums.solve_form();
+        assert!((sa - a).norm() < 1e-12 * a.norm(), "{sa} vs {a}");
+        assert!((sb - b).norm() < 1e-12 * b.norm(), "{sb} vs {b}");
+    }
+
+    #[test]
+    fn remembered_correspondences_are_the_nearest_model_points() {
+        // Queries drift as ICP iterations move them: every answer equals a fresh k-d tree search,
+        // on a model smaller than the remembered neighbourhood too, and the tree is searched far
+        // less often than asked.
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        for n_model in [3, 400] {
+            let size = Vector3::new(0.4, 0.25, 0.1);
+            let model = PartModel::new(&box_surface(&mut rng, n_model, size), 0.008);
+            let frame = box_surface(&mut rng, 200, size);
+            let mut nn = Correspondences::new(&model, frame.len());
+            let mut asked = 0;
+            for step in 0..30 {
+                let drift = Vector3::new(0.002, -0.001, 0.0005) * step as f64;
+                for (i, x) in frame.iter().enumerate() {
+                    let y = x + drift + Vector3::from_fn(|_, _| rng.random_range(-0.0005..0.0005));
+                    let gate = if step % 2 == 0 { 0.1 } else { 0.02 };
+                    let got = nn.nearest(i, &y, gate);
+                    let want = model.nearest(&y, gate);
+                    asked += 1;
+                    match (got, want) {
+                        (Some((j, d)), Some((k, e))) => assert!(j == k || (d - e).abs() < 1e-15, "point {i}: {j} at {d} vs {k} at {e}"),
+                        (a, b) => assert_eq!(a.is_some(), b.is_some(), "point {i} at step {step}: {a:?} vs {b:?}"),
+                    }
+                }
+            }
+            assert_eq!(nn.searched + nn.reused, asked);
+            if n_model > 3 {
+                assert!(nn.searched * 3 < asked, "searched {} of {asked}", nn.searched);
+            }
+        }
     }
 
     /// Points on the surface of a box: a sparse random sample per frame.
