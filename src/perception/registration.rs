@@ -421,9 +421,9 @@ impl NormalEquations {
     /// One point-to-point match of `y` (reference configuration) with residual `r` \[m\] and
     /// weight `wp` \[1/m²\].
     fn add_point(&mut self, y: &Vector3<f64>, r: &Vector3<f64>, wp: f64) {
-        self.w += wp;
-        self.wy += wp * y;
         let wy = wp * y;
+        self.w += wp;
+        self.wy += wy;
         self.wyy[0] += wy.x * y.x;
         self.wyy[1] += wy.x * y.y;
         self.wyy[2] += wy.x * y.z;
