@@ -53,7 +53,7 @@ use super::summary::{self, softmax};
 use super::Posterior;
 use crate::model::dynamics::{self, JointInWindow, SubtreeBody};
 use crate::model::likelihood::{coordinate_prior, log_likelihood_position, log_likelihood_rotation, Evidence};
-use crate::model::{decode, displacement, tree, Displacement, JointParams, JointType, ModelConfig};
+use crate::model::{decode, displacement, mat_mul, tree, Displacement, JointParams, JointType, ModelConfig};
 
 /// Dual number with enough directions for the largest joint (11 parameters) plus one coordinate.
 type D = DualSVec64<12>;
@@ -190,7 +190,7 @@ pub(crate) fn block_pass(
             continue;
         }
         let qt = if joint.movable() { D::from_re(q[t]).derivative(Q_SLOT) } else { D::from_re(q[t]) };
-        let s = pre[t].lift::<D>().compose(&displacement(&p, qt));
+        let s = pre[t].compose_lifted(&displacement(&p, qt));
         let mut ll = D::from_re(0.0);
         if let Some(o) = own_obs {
             ll += log_likelihood_position(o, &s.apply(&p.com), p.noise, cfg.student_nu);
@@ -200,10 +200,10 @@ pub(crate) fn block_pass(
         }
         for mb in subtree {
             if let Some(o) = &ev.parts[mb.m].obs[t] {
-                ll += log_likelihood_position(o, &s.apply(&mb.z[t].map(D::from)), D::from(mb.sigma), cfg.student_nu);
+                ll += log_likelihood_position(o, &s.apply_const(&mb.z[t]), D::from(mb.sigma), cfg.student_nu);
             }
             if let Some(o) = &ev.parts[mb.m].rot[t] {
-                ll += log_likelihood_rotation(o, &(s.r * mb.r[t].map(D::from)), D::from(mb.rot_sigma), cfg.student_nu);
+                ll += log_likelihood_rotation(o, &mat_mul(&s.r, &mb.r[t]), D::from(mb.rot_sigma), cfg.student_nu);
             }
         }
         l += ll.re;

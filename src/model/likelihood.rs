@@ -325,9 +325,10 @@ pub fn log_likelihood_rotation<T: Real>(o: &RotationObs, r: &Matrix3<T>, sigma_r
     if o.axes.is_empty() {
         return c(0.0);
     }
-    let ro = o.r.map(c::<T>);
-    let e = r * ro.transpose();
-    let w = Vector3::new(e[(2, 1)] - e[(1, 2)], e[(0, 2)] - e[(2, 0)], e[(1, 0)] - e[(0, 1)]).map(|v| v * 0.5);
+    // Off-diagonal entries of `e = r R_obs^T` only, summed in nalgebra's order (bit-identical).
+    let ro = &o.r;
+    let e = |i: usize, j: usize| r[(i, 0)] * ro[(j, 0)] + r[(i, 1)] * ro[(j, 1)] + r[(i, 2)] * ro[(j, 2)];
+    let w = Vector3::new(e(2, 1) - e(1, 2), e(0, 2) - e(2, 0), e(1, 0) - e(0, 1)).map(|v| v * 0.5);
     let s2 = sigma_r * sigma_r;
     let (mut m2, mut hld) = (c::<T>(0.0), c::<T>(0.0));
     for (a, v) in &o.axes {

@@ -158,13 +158,21 @@ impl<T: Real> Displacement<T> {
     }
 
     /// Apply to a point.
+    #[inline]
     pub fn apply(&self, x: &Vector3<T>) -> Vector3<T> {
-        self.r * x + self.t
+        mat_vec(&self.r, x) + self.t
     }
 
     /// `self ∘ other`: first `other`, then `self`.
+    #[inline]
     pub fn compose(&self, other: &Displacement<T>) -> Displacement<T> {
-        Displacement { r: self.r * other.r, t: self.r * other.t + self.t }
+        Displacement { r: mat_mul(&self.r, &other.r), t: mat_vec(&self.r, &other.t) + self.t }
+    }
+
+    /// Apply to a constant point: [`Self::apply`] of `x.map(c)`, the same value to the last bit.
+    #[inline]
+    pub fn apply_const(&self, x: &Vector3<f64>) -> Vector3<T> {
+        mat_vec(&self.r, x) + self.t
     }
 }
 
@@ -173,6 +181,36 @@ impl Displacement<f64> {
     pub fn lift<T: Real>(&self) -> Displacement<T> {
         Displacement { r: self.r.map(c), t: self.t.map(c) }
     }
+
+    /// `self.lift().compose(other)`, the same value to the last bit, without the derivative
+    /// arithmetic of constants (the likelihood's inner loop, [`crate::inference`]).
+    #[inline]
+    pub fn compose_lifted<T: Real>(&self, other: &Displacement<T>) -> Displacement<T> {
+        let r = Matrix3::from_fn(|i, j| other.r[(0, j)] * self.r[(i, 0)] + other.r[(1, j)] * self.r[(i, 1)] + other.r[(2, j)] * self.r[(i, 2)]);
+        let t = Vector3::from_fn(|i, _| other.t[0] * self.r[(i, 0)] + other.t[1] * self.r[(i, 1)] + other.t[2] * self.r[(i, 2)] + self.t[i]);
+        Displacement { r, t }
+    }
+}
+
+/// `a b`: nalgebra's `a * b` to the last bit (its generic product sums over `k` in order for
+/// entry `(i, j)`, multiplying every term by 1 first; dual numbers pay for that multiplication,
+/// and the likelihood's inner loop is mostly 3x3 products of dual numbers). `b` may be constant
+/// (`f64`): then `a * b.map(c)` to the last bit, without the derivative arithmetic of constants.
+#[inline]
+pub fn mat_mul<T: Real, U: Copy>(a: &Matrix3<T>, b: &Matrix3<U>) -> Matrix3<T>
+where
+    T: std::ops::Mul<U, Output = T>,
+{
+    Matrix3::from_fn(|i, j| a[(i, 0)] * b[(0, j)] + a[(i, 1)] * b[(1, j)] + a[(i, 2)] * b[(2, j)])
+}
+
+/// `a x`: nalgebra's `a * x` to the last bit, `x` of the scalar type or constant (see [`mat_mul`]).
+#[inline]
+pub fn mat_vec<T: Real, U: Copy>(a: &Matrix3<T>, x: &Vector3<U>) -> Vector3<T>
+where
+    T: std::ops::Mul<U, Output = T>,
+{
+    Vector3::from_fn(|i, _| a[(i, 0)] * x[0] + a[(i, 1)] * x[1] + a[(i, 2)] * x[2])
 }
 
 /// Decoded physical parameters of one joint (any type), in the fixed frame.
@@ -244,7 +282,7 @@ pub fn normalize<T: Real>(v: &Vector3<T>) -> Vector3<T> {
 pub fn rotation<T: Real>(k: &Vector3<T>, angle: T) -> Matrix3<T> {
     let (s, co) = (angle.sin(), angle.cos());
     let kx = Matrix3::new(c(0.0), -k.z, k.y, k.z, c(0.0), -k.x, -k.y, k.x, c(0.0));
-    Matrix3::identity() + kx * s + (kx * kx) * (c::<T>(1.0) - co)
+    Matrix3::identity() + kx * s + mat_mul(&kx, &kx) * (c::<T>(1.0) - co)
 }
 
 /// The joint coordinate that best explains an observed centre of mass `y` \[m\] (fixed frame,
@@ -283,5 +321,29 @@ mod tests {
             let x = displacement(&p, 1e-4).apply(&p.com);
             assert!(((x - p.com).norm() - 1e-4).abs() < 1e-6, "{joint:?}");
         }
+    }
+
+    /// The hand-written 3x3 products agree with nalgebra's to the last bit, value and
+    /// derivatives, with dual and with constant right-hand sides: the inference's results must
+    /// not depend on which one computed them.
+    #[test]
+    fn hand_written_products_are_nalgebras_to_the_last_bit() {
+        type D = num_dual::DualSVec64<4>;
+        let d = |x: f64, k: usize| D::from_re(x).derivative(k % 4);
+        let a = Matrix3::from_fn(|i, j| d((0.37 * (i * 3 + j) as f64 + 0.11).sin() * 1.3, i + j));
+        let b = Matrix3::from_fn(|i, j| d((0.91 * (i * 3 + j) as f64 - 0.4).cos() / 0.7, 2 * i + j));
+        let bc = b.map(|x| x.re);
+        let x = Vector3::new(d(0.123, 1), d(-4.56, 2), d(7.89e-3, 3));
+        let xc = x.map(|x| x.re);
+        let same = |u: &D, v: &D| u.re.to_bits() == v.re.to_bits() && u.eps.0.map(|e| e.map(f64::to_bits)) == v.eps.0.map(|e| e.map(f64::to_bits));
+        let all = |u: &[D], v: &[D]| u.iter().zip(v).all(|(u, v)| same(u, v));
+        assert!(all(mat_mul(&a, &b).as_slice(), (a * b).as_slice()));
+        assert!(all(mat_mul(&a, &bc).as_slice(), (a * bc.map(D::from)).as_slice()));
+        assert!(all(mat_vec(&a, &x).as_slice(), (a * x).as_slice()));
+        assert!(all(mat_vec(&a, &xc).as_slice(), (a * xc.map(D::from)).as_slice()));
+        let pre = Displacement { r: a.map(|x| x.re), t: x.map(|x| x.re * 0.5) };
+        let other = Displacement { r: b, t: x };
+        let (u, v) = (pre.compose_lifted(&other), pre.lift::<D>().compose(&other));
+        assert!(all(u.r.as_slice(), v.r.as_slice()) && all(u.t.as_slice(), v.t.as_slice()));
     }
 }

@@ -555,13 +555,11 @@ impl<T: Real> JointDynamics<T> {
                 let (vr, f0r, kr) = (v.re(), f0.re(), k.re());
                 let cr = self.quadratic_damping.re();
                 // Friction and quadratic damping, and their derivative in the velocity.
-                let fric = |w: f64| fr * (w / vs).tanh() + cr * w * w.abs();
-                let dfric = |w: f64| {
-                    let th = (w / vs).tanh();
-                    fr * (1.0 - th * th) / vs + 2.0 * cr * w.abs()
-                };
-                let g = |w: f64| ir * (w - vr) - (t + f0r - br * w - fric(w) - kr * w * h) * h;
-                let dg = |w: f64| ir + (br + dfric(w) + kr * h) * h;
+                // `th = tanh(w / vs)`, computed once per Newton iterate for both.
+                let fric = |w: f64, th: f64| fr * th + cr * w * w.abs();
+                let dfric = |w: f64, th: f64| fr * (1.0 - th * th) / vs + 2.0 * cr * w.abs();
+                let g = |w: f64, th: f64| ir * (w - vr) - (t + f0r - br * w - fric(w, th) - kr * w * h) * h;
+                let dg = |w: f64, th: f64| ir + (br + dfric(w, th) + kr * h) * h;
                 // Bracket: g is increasing; the friction term is bounded by fr, and the quadratic
                 // damping only pulls the root towards zero.
                 let lin = ir + (br + kr * h) * h;
@@ -576,12 +574,13 @@ impl<T: Real> JointDynamics<T> {
                 }
                 let mut w = vr.clamp(lo, hi);
                 for _ in 0..60 {
-                    let gw = g(w);
+                    let th = (w / vs).tanh();
+                    let gw = g(w, th);
                     if gw.abs() < 1e-14 * (1.0 + ir * w.abs()) {
                         break;
                     }
                     if gw > 0.0 { hi = w } else { lo = w }
-                    let next = w - gw / dg(w);
+                    let next = w - gw / dg(w, th);
                     w = if next > lo && next < hi { next } else { 0.5 * (lo + hi) };
                 }
                 let wt = c::<T>(w);

@@ -33,7 +33,7 @@ pub(super) fn decode<T: Real>(mut p: JointParams<T>, xi: &[T], com0: &Vector3<f6
 
 pub(super) fn displacement<T: Real>(p: &JointParams<T>, q: T) -> Displacement<T> {
     let r = rotation(&p.direction, q / p.radius);
-    Displacement { r, t: p.point - r * p.point }
+    Displacement { r, t: p.point - super::mat_vec(&r, &p.point) }
 }
 
 /// Initial standardised axis parameters and path-length coordinates from a centre-of-mass track
