@@ -197,18 +197,18 @@ impl Displacement<f64> {
 /// and the likelihood's inner loop is mostly 3x3 products of dual numbers). `b` may be constant
 /// (`f64`): then `a * b.map(c)` to the last bit, without the derivative arithmetic of constants.
 #[inline]
-pub fn mat_mul<T: Real, U: Copy>(a: &Matrix3<T>, b: &Matrix3<U>) -> Matrix3<T>
+pub fn mat_mul<T, U: Copy>(a: &Matrix3<T>, b: &Matrix3<U>) -> Matrix3<T>
 where
-    T: std::ops::Mul<U, Output = T>,
+    T: Real + std::ops::Mul<U, Output = T>,
 {
     Matrix3::from_fn(|i, j| a[(i, 0)] * b[(0, j)] + a[(i, 1)] * b[(1, j)] + a[(i, 2)] * b[(2, j)])
 }
 
 /// `a x`: nalgebra's `a * x` to the last bit, `x` of the scalar type or constant (see [`mat_mul`]).
 #[inline]
-pub fn mat_vec<T: Real, U: Copy>(a: &Matrix3<T>, x: &Vector3<U>) -> Vector3<T>
+pub fn mat_vec<T, U: Copy>(a: &Matrix3<T>, x: &Vector3<U>) -> Vector3<T>
 where
-    T: std::ops::Mul<U, Output = T>,
+    T: Real + std::ops::Mul<U, Output = T>,
 {
     Vector3::from_fn(|i, _| a[(i, 0)] * x[0] + a[(i, 1)] * x[1] + a[(i, 2)] * x[2])
 }
