@@ -44,6 +44,13 @@ fn a_three_part_cabinet_reports_every_part_and_the_baselines() {
     assert!(parts[0]["axis_angle_deg"].is_null());
     let mean: f64 = parts.iter().map(|p| p["graph_mse"].as_f64().unwrap()).sum::<f64>() / 3.0;
     assert!((mean - m["graph_mse"].as_f64().unwrap()).abs() < 1e-12);
+    // Calibration: the doors' true damping, friction and axis mostly fall inside the 90%
+    // intervals (6 of 6 when written; 0 of 6 when the kinodynamics were conditioned on the
+    // guide's coordinates and the axis spread ignored the residuals' autocorrelation).
+    let covered = m["coverage"]["all"].as_array().unwrap();
+    let (hit, of) = (covered[0].as_u64().unwrap(), covered[1].as_u64().unwrap());
+    assert_eq!(of, 6);
+    assert!(hit >= 4, "{hit} of {of} inside the 90% intervals: {}", m["coverage"]);
 }
 
 #[test]

@@ -47,6 +47,7 @@ pub fn joints(
     layout: &Layout,
     theta: &[f64],
     inflation: &[[f64; 3]],
+    axis_inflation: &[f64],
     type_logits: &[[f64; 3]],
     parent_logits: &[Vec<f64>],
     samples: usize,
@@ -68,7 +69,7 @@ pub fn joints(
             // The axis and kinodynamics of the more probable movable type.
             let axis_type = if probs[2] >= probs[1] { JointType::Revolute } else { JointType::Prismatic };
             let b = layout.blocks[i][axis_type.index()];
-            let axis = Some(axis_summary(ev, i, &b, theta, model, samples, rng));
+            let axis = Some(axis_summary(ev, i, &b, theta, model, axis_inflation[i], samples, rng));
             let kinodynamics = b.kd.map(|kd| {
                 let mean = kd.mean(theta);
                 let l = kd.factor(theta);
@@ -110,31 +111,38 @@ pub fn joints(
 /// The axis of block `b` of part `i`: mean direction and point (the point of the axis closest to
 /// the part's centre of mass), their spreads, and the 90% quantile of the angle between sampled
 /// directions and the mean (the radius of the 90% credible cone).
-fn axis_summary(ev: &Evidence, i: usize, b: &Block, theta: &[f64], model: &ModelConfig, samples: usize, rng: &mut ChaCha8Rng) -> AxisSummary {
+#[allow(clippy::too_many_arguments)]
+fn axis_summary(ev: &Evidence, i: usize, b: &Block, theta: &[f64], model: &ModelConfig, inflation: f64, samples: usize, rng: &mut ChaCha8Rng) -> AxisSummary {
     let np = b.joint.num_params();
+    let widen = inflation.max(1.0).sqrt();
     let mean = decode::<f64>(b.joint, &theta[b.mu..b.mu + np], &ev.parts[i].com0, model);
-    let (mut dirs, mut points) = (Vec::new(), Vec::new());
-    for _ in 0..samples.max(2) {
-        let xi: Vec<f64> = (0..np)
-            .map(|j| {
-                let e: f64 = StandardNormal.sample(rng);
-                theta[b.mu + j] + theta[b.log_s + j].exp() * e
-            })
-            .collect();
-        let p = decode::<f64>(b.joint, &xi, &ev.parts[i].com0, model);
+    // The estimate from the guide's draws, the spreads from the same draws widened by the
+    // inflation (so that widening never moves the estimate).
+    let (mut dirs, mut points, mut wide_dirs, mut wide_points) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let on_axis = |xi: &[f64]| {
+        let p = decode::<f64>(b.joint, xi, &ev.parts[i].com0, model);
         let d = if p.direction.dot(&mean.direction) < 0.0 { -p.direction } else { p.direction };
+        (d, p.point + d * (p.com - p.point).dot(&d))
+    };
+    for _ in 0..samples.max(2) {
+        let e: Vec<f64> = (0..np).map(|_| StandardNormal.sample(rng)).collect();
+        let draw = |w: f64| -> Vec<f64> { (0..np).map(|j| theta[b.mu + j] + theta[b.log_s + j].exp() * w * e[j]).collect() };
+        let (d, p) = on_axis(&draw(1.0));
         dirs.push(d);
-        points.push(p.point + d * (p.com - p.point).dot(&d));
+        points.push(p);
+        let (d, p) = on_axis(&draw(widen));
+        wide_dirs.push(d);
+        wide_points.push(p);
     }
     let m = dirs.iter().sum::<Vector3<f64>>();
     let dir = m / m.norm();
-    let mut angles: Vec<f64> = dirs.iter().map(|d| d.dot(&dir).clamp(-1.0, 1.0).acos().to_degrees()).collect();
+    let mut angles: Vec<f64> = wide_dirs.iter().map(|d| d.dot(&dir).clamp(-1.0, 1.0).acos().to_degrees()).collect();
     let sd_deg = (angles.iter().map(|a| a * a).sum::<f64>() / angles.len() as f64).sqrt();
     angles.sort_by(|a, b| a.total_cmp(b));
     let q90 = angles[((angles.len() - 1) as f64 * 0.9).round() as usize];
     let (point, point_sd) = if b.joint == JointType::Revolute {
         let pm = points.iter().sum::<Vector3<f64>>() / points.len() as f64;
-        let sd = (points.iter().map(|p| (p - pm).norm_squared()).sum::<f64>() / points.len() as f64).sqrt();
+        let sd = (wide_points.iter().map(|p| (p - pm).norm_squared()).sum::<f64>() / wide_points.len() as f64).sqrt();
         (Some(pm), sd)
     } else {
         (None, f64::NAN)

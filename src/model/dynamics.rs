@@ -187,13 +187,18 @@ pub struct JointInWindow<'a> {
 /// standardised kinodynamic parameters (layout of [`decode`] for `jw.effects`). `d/d q_t` has one
 /// entry per frame of the window (the first is the derivative with respect to `q_{w,0}` through
 /// the simulation).
-pub fn window_prior(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64], xi: &[f64], cfg: &DynamicsConfig) -> (f64, Vec<f64>, Vec<f64>) {
+///
+/// `obs_var` (empty, or one entry per grid frame, m²) adds a known variance per frame: with `q`
+/// the *observed* coordinates and `obs_var` their observation variance, this is the likelihood of
+/// the observations with the latent coordinates integrated out (`q_t ~ N(Psi_t, sigma_d^2)`,
+/// `y_t ~ N(q_t, r_t^2)` gives `y_t ~ N(Psi_t, sigma_d^2 + r_t^2)`).
+pub fn window_prior(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64], obs_var: &[f64], xi: &[f64], cfg: &DynamicsConfig) -> (f64, Vec<f64>, Vec<f64>) {
     // Dual numbers as wide as the parameters plus `q_{w,0}`: the base model's 4 + 1 are the
     // common case and the cheapest.
     match xi.len() {
-        0..=4 => window_prior_n::<5>(jw, win, q, xi, cfg),
-        5..=6 => window_prior_n::<7>(jw, win, q, xi, cfg),
-        7..=10 => window_prior_n::<11>(jw, win, q, xi, cfg),
+        0..=4 => window_prior_n::<5>(jw, win, q, obs_var, xi, cfg),
+        5..=6 => window_prior_n::<7>(jw, win, q, obs_var, xi, cfg),
+        7..=10 => window_prior_n::<11>(jw, win, q, obs_var, xi, cfg),
         n => panic!("{n} kinodynamic parameters: at most 10 (4 base, 6 of effects)"),
     }
 }
@@ -248,7 +253,9 @@ pub fn simulate_window<T: Real>(jw: &JointInWindow<'_>, win: &WindowEvidence, q0
     Some(traj)
 }
 
-fn window_prior_n<const N: usize>(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64], xi: &[f64], cfg: &DynamicsConfig) -> (f64, Vec<f64>, Vec<f64>) {
+const STUDENT_NU: f64 = 4.0;
+
+fn window_prior_n<const N: usize>(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64], obs_var: &[f64], xi: &[f64], cfg: &DynamicsConfig) -> (f64, Vec<f64>, Vec<f64>) {
     type D<const N: usize> = DualSVec64<N>;
     let nk = xi.len();
     let q0_slot = N - 1;
@@ -258,17 +265,27 @@ fn window_prior_n<const N: usize>(jw: &JointInWindow<'_>, win: &WindowEvidence, 
     let q0 = D::<N>::from_re(q[frames[0]]).derivative(q0_slot);
     // No force on the subtree, no spring, no gravity: the joint stays where it is.
     let traj = simulate_window(jw, win, q0, &kp, cfg);
-    let var = kp.deviation * kp.deviation;
-    let norm = num_dual::DualNum::ln(&(var * (2.0 * std::f64::consts::PI))) * 0.5;
+    let dev2 = kp.deviation * kp.deviation;
+    let norm = num_dual::DualNum::ln(&(dev2 * (2.0 * std::f64::consts::PI))) * 0.5;
     let mut ll = D::<N>::from(0.0);
     let mut gq = vec![0.0; frames.len()];
     for (k, &t) in frames.iter().enumerate().skip(1) {
         let psi = traj.as_ref().map_or(q0, |tr| tr[win.frame_substep[k]]);
         let d = D::<N>::from(q[t]) - psi;
-        let term = -(d * d) / (var * 2.0) - norm;
-        ll += term;
-        // Direct derivative with respect to q_t (the dual part carries d/d q_{w,0} via psi).
-        gq[k] = -d.re / var.re;
+        match obs_var.get(t) {
+            Some(&r2) if r2 > 0.0 => {
+                let var = dev2 + r2;
+                let nu = STUDENT_NU;
+                let lnorm = libm::lgamma(0.5 * (nu + 1.0)) - libm::lgamma(0.5 * nu) - 0.5 * (nu * std::f64::consts::PI).ln();
+                ll += -(num_dual::DualNum::ln(&(d * d / (var * nu) + 1.0)) * (0.5 * (nu + 1.0))) - num_dual::DualNum::ln(&var) * 0.5 + lnorm;
+                gq[k] = -(nu + 1.0) * d.re / (nu * var.re + d.re * d.re);
+            }
+            _ => {
+                ll += -(d * d) / (dev2 * 2.0) - norm;
+                // Direct derivative with respect to q_t (the dual part carries d/d q_{w,0} via psi).
+                gq[k] = -d.re / dev2.re;
+            }
+        }
     }
     let eps = ll.eps.unwrap_generic(nalgebra::Const::<N>, nalgebra::U1);
     let gx: Vec<f64> = (0..nk).map(|j| eps[j]).collect();
@@ -313,9 +330,17 @@ mod tests {
     /// The physics prior's dual-number gradient against central finite differences, in every
     /// parameter and in the coordinates of the first, middle and last frame.
     fn check_gradients(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64], xi: &[f64], cfg: &DynamicsConfig) {
-        let (_, gx, gq) = window_prior(jw, win, q, xi, cfg);
+        // Latent coordinates, and observed ones with their variance (Student-t, latent ones
+        // integrated out), a few millimetres of perception noise.
+        let obs_var: Vec<f64> = (0..q.len()).map(|t| (0.002 + 0.001 * (t % 3) as f64).powi(2)).collect();
+        check_gradients_with(jw, win, q, &[], xi, cfg);
+        check_gradients_with(jw, win, q, &obs_var, xi, cfg);
+    }
+
+    fn check_gradients_with(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64], obs_var: &[f64], xi: &[f64], cfg: &DynamicsConfig) {
+        let (_, gx, gq) = window_prior(jw, win, q, obs_var, xi, cfg);
         let e = 1e-6;
-        let fd = |a: &[f64], b: &[f64], qa: &[f64], qb: &[f64]| (window_prior(jw, win, qa, a, cfg).0 - window_prior(jw, win, qb, b, cfg).0) / (2.0 * e);
+        let fd = |a: &[f64], b: &[f64], qa: &[f64], qb: &[f64]| (window_prior(jw, win, qa, obs_var, a, cfg).0 - window_prior(jw, win, qb, obs_var, b, cfg).0) / (2.0 * e);
         for j in 0..xi.len() {
             let (mut a, mut b) = (xi.to_vec(), xi.to_vec());
             a[j] += e;
@@ -353,7 +378,7 @@ mod tests {
         sim.extend(jd.simulate(0.0, 0.0, &tau, h, cfg.friction_velocity));
         let q: Vec<f64> = win.frame_substep.iter().map(|&s| sim[s] * 0.3).collect();
         assert!(q[12] > 0.1, "the door turned: {q:?}");
-        let at = |b: f64, mu: f64| window_prior(&jw, &win, &q, &[b, mu, truth[2], -1.0], &cfg).0;
+        let at = |b: f64, mu: f64| window_prior(&jw, &win, &q, &[], &[b, mu, truth[2], -1.0], &cfg).0;
         let best = at(truth[0], truth[1]);
         for (db, dm) in [(0.3, 0.0), (-0.3, 0.0), (0.0, 0.3), (0.0, -0.3)] {
             assert!(at(truth[0] + db, truth[1] + dm) < best - 1.0, "({db}, {dm})");
