@@ -150,7 +150,7 @@ impl JointSeries {
             if !use_window(w) {
                 continue;
             }
-            let (lw, gw, _) = dynamics::window_prior(&self.joint_in_window(w, effects), &self.windows[w].win, &self.q, &[], xi, cfg);
+            let (lw, gw, _) = dynamics::window_prior(&self.joint_in_window(w, effects), &self.windows[w].win, &self.q, None, xi, cfg);
             l += lw;
             for (a, b) in g.iter_mut().zip(gw) {
                 *a += b;

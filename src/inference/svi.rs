@@ -308,7 +308,7 @@ fn observed_coordinates(ev: &Evidence, i: usize, s: &mut BlockSample, pre: &[Dis
 /// The guide (`collapsed` false) conditions on the guide's mean coordinates, as its mean-field
 /// ELBO does. The reported kinodynamics (`collapsed` true, on a copy of `theta`) use the observed
 /// coordinates with the latent ones integrated out ([`observed_coordinates`],
-/// [`dynamics::window_prior`]'s `obs_var`): the physics prior pulls the guide's coordinates onto
+/// [`dynamics::window_prior`]'s `observed`): the physics prior pulls the guide's coordinates onto
 /// the trajectory of the current parameters, so the conditional mode stays near those parameters
 /// and its curvature ignores how far the coordinates may move with them — on the `slidecabinet`
 /// bag with perception's track replaced by the true motion, the conditional fit put damping and
@@ -346,11 +346,11 @@ fn laplace_kinodynamics(
                 axis_inflation[i] = position_inflation(ev, i, &s, &pre);
                 tracing::debug!("part {} {:?}: axis variance inflation {:.2}", ev.parts[i].label, b.joint, axis_inflation[i]);
             }
-            let obs_var = if collapsed { observed_coordinates(ev, i, &mut s, &pre) } else { vec![] };
+            let observed = collapsed.then(|| dynamics::Observed { var: observed_coordinates(ev, i, &mut s, &pre), nu: model.student_nu });
             // Log posterior of the block (physics prior + N(0, I)) and its gradient.
             let mut post = |xi: &[f64]| {
                 s.kd = Some((vec![0.0; kd.dim], xi.to_vec()));
-                let (l, g, _) = dynamics_pass(ev, i, &s, &obs_var, &pre, &desc, &chosen, &transforms, model);
+                let (l, g, _) = dynamics_pass(ev, i, &s, observed.as_ref(), &pre, &desc, &chosen, &transforms, model);
                 let l = l - 0.5 * xi.iter().map(|x| x * x).sum::<f64>();
                 let g: Vec<f64> = g.iter().zip(xi).map(|(g, x)| g - x).collect();
                 (l, g)
@@ -367,7 +367,7 @@ fn laplace_kinodynamics(
             // also allow for the deviations' correlation, see `variance_inflation`.)
             let neg_h = -laplace::hessian(&mut post, &x);
             s.kd = Some((vec![0.0; kd.dim], x.clone()));
-            let (_, _, gq) = dynamics_pass(ev, i, &s, &obs_var, &pre, &desc, &chosen, &transforms, model);
+            let (_, _, gq) = dynamics_pass(ev, i, &s, observed.as_ref(), &pre, &desc, &chosen, &transforms, model);
             inflation[i][b.joint.index()] = variance_inflation(ev, &gq);
             tracing::debug!("part {} {:?}: variance inflation {:.2}", ev.parts[i].label, b.joint, inflation[i][b.joint.index()]);
             if let Some(cov) = neg_h.clone().cholesky().map(|c| c.inverse()) {
@@ -465,7 +465,7 @@ fn dynamics_pass(
     ev: &Evidence,
     i: usize,
     s: &BlockSample,
-    obs_var: &[f64],
+    observed: Option<&dynamics::Observed>,
     pre: &[Displacement<f64>],
     desc: &[usize],
     chosen: &[&BlockSample],
@@ -515,7 +515,7 @@ fn dynamics_pass(
             pushed,
             effects: ev.effects[i],
         };
-        let (lw, gxw, gqw) = dynamics::window_prior(&jw, win, &s.q, obs_var, xi, dyncfg);
+        let (lw, gxw, gqw) = dynamics::window_prior(&jw, win, &s.q, observed, xi, dyncfg);
         l += lw;
         for (a, b) in gx.iter_mut().zip(&gxw) {
             *a += b;
@@ -723,7 +723,7 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
                     let (l, gx, mut gq) = block_pass(ev, i, b.joint, &s.xi, &s.q, &pre, &subtree, model);
                     let mut f = l + analytic[i][k];
                     if let (Some(kd), Some((eps, _))) = (b.kd, &s.kd) {
-                        let (ld, gkd, gqd) = dynamics_pass(ev, i, s, &[], &pre, &desc, &chosen, &transforms, model);
+                        let (ld, gkd, gqd) = dynamics_pass(ev, i, s, None, &pre, &desc, &chosen, &transforms, model);
                         f += ld;
                         kd.add_sample_grad(&theta, &gkd, eps, pw, &mut grad);
                         for (a, b) in gq.iter_mut().zip(&gqd) {

@@ -188,17 +188,17 @@ pub struct JointInWindow<'a> {
 /// entry per frame of the window (the first is the derivative with respect to `q_{w,0}` through
 /// the simulation).
 ///
-/// `obs_var` (empty, or one entry per grid frame, m²) adds a known variance per frame: with `q`
-/// the *observed* coordinates and `obs_var` their observation variance, this is the likelihood of
-/// the observations with the latent coordinates integrated out (`q_t ~ N(Psi_t, sigma_d^2)`,
-/// `y_t ~ N(q_t, r_t^2)` gives `y_t ~ N(Psi_t, sigma_d^2 + r_t^2)`).
-pub fn window_prior(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64], obs_var: &[f64], xi: &[f64], cfg: &DynamicsConfig) -> (f64, Vec<f64>, Vec<f64>) {
+/// With `observed`, `q` are the *observed* coordinates and the result is their likelihood with
+/// the latent coordinates integrated out: `q_t ~ N(Psi_t, sigma_d^2)` and `y_t ~ N(q_t, r_t^2)`
+/// give `y_t ~ N(Psi_t, sigma_d^2 + r_t^2)`, taken Student-t with `observed.nu` degrees of freedom
+/// as positions are (eq. 2, with the perception's bursts), over the frames with `r_t^2 > 0`.
+pub fn window_prior(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64], observed: Option<&Observed>, xi: &[f64], cfg: &DynamicsConfig) -> (f64, Vec<f64>, Vec<f64>) {
     // Dual numbers as wide as the parameters plus `q_{w,0}`: the base model's 4 + 1 are the
     // common case and the cheapest.
     match xi.len() {
-        0..=4 => window_prior_n::<5>(jw, win, q, obs_var, xi, cfg),
-        5..=6 => window_prior_n::<7>(jw, win, q, obs_var, xi, cfg),
-        7..=10 => window_prior_n::<11>(jw, win, q, obs_var, xi, cfg),
+        0..=4 => window_prior_n::<5>(jw, win, q, observed, xi, cfg),
+        5..=6 => window_prior_n::<7>(jw, win, q, observed, xi, cfg),
+        7..=10 => window_prior_n::<11>(jw, win, q, observed, xi, cfg),
         n => panic!("{n} kinodynamic parameters: at most 10 (4 base, 6 of effects)"),
     }
 }
@@ -253,9 +253,16 @@ pub fn simulate_window<T: Real>(jw: &JointInWindow<'_>, win: &WindowEvidence, q0
     Some(traj)
 }
 
-const STUDENT_NU: f64 = 4.0;
+/// Observed joint coordinates' variances for [`window_prior`].
+#[derive(Debug, Clone)]
+pub struct Observed {
+    /// Observation variance per grid frame \[m²\] (0: not observed; the latent coordinate is used).
+    pub var: Vec<f64>,
+    /// Student-t degrees of freedom (0 or infinite: Gaussian).
+    pub nu: f64,
+}
 
-fn window_prior_n<const N: usize>(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64], obs_var: &[f64], xi: &[f64], cfg: &DynamicsConfig) -> (f64, Vec<f64>, Vec<f64>) {
+fn window_prior_n<const N: usize>(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64], observed: Option<&Observed>, xi: &[f64], cfg: &DynamicsConfig) -> (f64, Vec<f64>, Vec<f64>) {
     type D<const N: usize> = DualSVec64<N>;
     let nk = xi.len();
     let q0_slot = N - 1;
@@ -272,10 +279,14 @@ fn window_prior_n<const N: usize>(jw: &JointInWindow<'_>, win: &WindowEvidence, 
     for (k, &t) in frames.iter().enumerate().skip(1) {
         let psi = traj.as_ref().map_or(q0, |tr| tr[win.frame_substep[k]]);
         let d = D::<N>::from(q[t]) - psi;
-        match obs_var.get(t) {
-            Some(&r2) if r2 > 0.0 => {
+        match observed.map(|o| (o.var[t], o.nu)) {
+            Some((r2, nu)) if r2 > 0.0 && !(nu.is_finite() && nu > 0.0) => {
                 let var = dev2 + r2;
-                let nu = STUDENT_NU;
+                ll += -(d * d) / (var * 2.0) - num_dual::DualNum::ln(&(var * (2.0 * std::f64::consts::PI))) * 0.5;
+                gq[k] = -d.re / var.re;
+            }
+            Some((r2, nu)) if r2 > 0.0 => {
+                let var = dev2 + r2;
                 let lnorm = libm::lgamma(0.5 * (nu + 1.0)) - libm::lgamma(0.5 * nu) - 0.5 * (nu * std::f64::consts::PI).ln();
                 ll += -(num_dual::DualNum::ln(&(d * d / (var * nu) + 1.0)) * (0.5 * (nu + 1.0))) - num_dual::DualNum::ln(&var) * 0.5 + lnorm;
                 gq[k] = -(nu + 1.0) * d.re / (nu * var.re + d.re * d.re);
@@ -332,15 +343,17 @@ mod tests {
     fn check_gradients(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64], xi: &[f64], cfg: &DynamicsConfig) {
         // Latent coordinates, and observed ones with their variance (Student-t, latent ones
         // integrated out), a few millimetres of perception noise.
-        let obs_var: Vec<f64> = (0..q.len()).map(|t| (0.002 + 0.001 * (t % 3) as f64).powi(2)).collect();
-        check_gradients_with(jw, win, q, &[], xi, cfg);
-        check_gradients_with(jw, win, q, &obs_var, xi, cfg);
+        let var: Vec<f64> = (0..q.len()).map(|t| (0.002 + 0.001 * (t % 3) as f64).powi(2)).collect();
+        check_gradients_with(jw, win, q, None, xi, cfg);
+        for nu in [4.0, 0.0] {
+            check_gradients_with(jw, win, q, Some(&Observed { var: var.clone(), nu }), xi, cfg);
+        }
     }
 
-    fn check_gradients_with(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64], obs_var: &[f64], xi: &[f64], cfg: &DynamicsConfig) {
-        let (_, gx, gq) = window_prior(jw, win, q, obs_var, xi, cfg);
+    fn check_gradients_with(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64], observed: Option<&Observed>, xi: &[f64], cfg: &DynamicsConfig) {
+        let (_, gx, gq) = window_prior(jw, win, q, observed, xi, cfg);
         let e = 1e-6;
-        let fd = |a: &[f64], b: &[f64], qa: &[f64], qb: &[f64]| (window_prior(jw, win, qa, obs_var, a, cfg).0 - window_prior(jw, win, qb, obs_var, b, cfg).0) / (2.0 * e);
+        let fd = |a: &[f64], b: &[f64], qa: &[f64], qb: &[f64]| (window_prior(jw, win, qa, observed, a, cfg).0 - window_prior(jw, win, qb, observed, b, cfg).0) / (2.0 * e);
         for j in 0..xi.len() {
             let (mut a, mut b) = (xi.to_vec(), xi.to_vec());
             a[j] += e;
@@ -378,7 +391,7 @@ mod tests {
         sim.extend(jd.simulate(0.0, 0.0, &tau, h, cfg.friction_velocity));
         let q: Vec<f64> = win.frame_substep.iter().map(|&s| sim[s] * 0.3).collect();
         assert!(q[12] > 0.1, "the door turned: {q:?}");
-        let at = |b: f64, mu: f64| window_prior(&jw, &win, &q, &[], &[b, mu, truth[2], -1.0], &cfg).0;
+        let at = |b: f64, mu: f64| window_prior(&jw, &win, &q, None, &[b, mu, truth[2], -1.0], &cfg).0;
         let best = at(truth[0], truth[1]);
         for (db, dm) in [(0.3, 0.0), (-0.3, 0.0), (0.0, 0.3), (0.0, -0.3)] {
             assert!(at(truth[0] + db, truth[1] + dm) < best - 1.0, "({db}, {dm})");
