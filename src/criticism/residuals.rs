@@ -74,7 +74,7 @@ impl JointSeries {
         };
         let q: Vec<f64> = (0..k)
             .map(|t| match &ev.parts[i].obs[t] {
-                Some(o) => track_coordinate(&params, &(pre[t].r.transpose() * (o.y - pre[t].t))),
+                Some(o) => track_coordinate(&params, &pre[t].inverse_apply(&o.y)),
                 None => f64::NAN,
             })
             .collect();

@@ -120,8 +120,7 @@ impl Posterior {
                 let Some(pre) = pre else { continue };
                 let params = &j.mean_params[j.map_type.index()];
                 if let Some(y) = observed[i] {
-                    let local = pre.r.transpose() * (y - pre.t);
-                    coords[i] = track_coordinate(params, &local);
+                    coords[i] = track_coordinate(params, &pre.inverse_apply(&y));
                 }
                 disp[i] = Some(pre.compose(&displacement(params, coords[i])));
             }

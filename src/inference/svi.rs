@@ -265,18 +265,6 @@ fn mean_block(ev: &Evidence, i: usize, b: &Block, theta: &[f64], model: &ModelCo
     BlockSample { eps: vec![0.0; np], xi, q_eps: vec![0.0; k], q, params, kd }
 }
 
-/// Laplace updates of the kinodynamic factors (dynamic mode): for every movable block, the mode of
-/// its physics prior plus its standard-normal prior, given the current coordinate means (and, at
-/// the `initial` call, after a coarse grid over damping and friction to find the basin), by
-/// Levenberg-damped Newton steps on dual-number gradients with a finite-difference Hessian; the
-/// guide's Gaussian is then centred there with the inverse negative Hessian as its covariance.
-///
-/// Why not Adam alone: damping and friction trade off along a long, narrow ridge of the posterior
-/// (a push moves as far with more damping and less friction), along which Adam's per-coordinate
-/// steps crawl for thousands of iterations; the coordinate means, the only other input, move little
-/// once the kinematic fit has settled. `parent` and `types` give the tree and the joint type of
-/// every other part.
-#[allow(clippy::too_many_arguments)]
 /// Replace the coordinates of `s` by the observed ones where part `i` is seen (the coordinate that
 /// best explains its observed centre of mass, [`crate::model::track_coordinate`], in the parent's
 /// frame `pre`), and return their observation variance per grid frame \[m²\] (0 where unseen):
@@ -287,7 +275,7 @@ fn observed_coordinates(ev: &Evidence, i: usize, s: &mut BlockSample, pre: &[Dis
     let mut r2 = vec![0.0; ev.len()];
     for (t, o) in ev.parts[i].obs.iter().enumerate() {
         let Some(o) = o else { continue };
-        let q = crate::model::track_coordinate(p, &(pre[t].r.transpose() * (o.y - pre[t].t)));
+        let q = crate::model::track_coordinate(p, &pre[t].inverse_apply(&o.y));
         // Unit tangent of the centre of mass's path at q (q is its path length), fixed frame.
         let e = 1e-4;
         let at = |q: f64| pre[t].apply(&displacement(p, q).apply(&p.com));
@@ -299,11 +287,17 @@ fn observed_coordinates(ev: &Evidence, i: usize, s: &mut BlockSample, pre: &[Dis
     r2
 }
 
-/// Laplace updates of the kinodynamic factors of every block under the tree `parent` (the
-/// other parts at joint types `types`, guide means): the mode of the block's log posterior
-/// (physics prior of every window plus the standard-normal prior), from a coarse grid first when
-/// `initial`, and the inverse negative Hessian there, written into the block's factor of `theta`;
-/// `inflation` gets the deviations' variance inflation.
+/// Laplace updates of the kinodynamic factors (dynamic mode): for every movable block, the mode of
+/// its physics prior plus its standard-normal prior, given the current coordinate means (and, at
+/// the `initial` call, after a coarse grid over damping and friction to find the basin), by
+/// Levenberg-damped Newton steps on dual-number gradients with a finite-difference Hessian; the
+/// guide's Gaussian is then centred there with the inverse negative Hessian as its covariance.
+///
+/// Why not Adam alone: damping and friction trade off along a long, narrow ridge of the posterior
+/// (a push moves as far with more damping and less friction), along which Adam's per-coordinate
+/// steps crawl for thousands of iterations; the coordinate means, the only other input, move little
+/// once the kinematic fit has settled. `parent` and `types` give the tree and the joint type of
+/// every other part.
 ///
 /// The guide (`collapsed` false) conditions on the guide's mean coordinates, as its mean-field
 /// ELBO does. The reported kinodynamics (`collapsed` true, on a copy of `theta`) use the observed
@@ -313,7 +307,8 @@ fn observed_coordinates(ev: &Evidence, i: usize, s: &mut BlockSample, pre: &[Dis
 /// and its curvature ignores how far the coordinates may move with them — on the `slidecabinet`
 /// bag with perception's track replaced by the true motion, the conditional fit put damping and
 /// friction at 11.9 N s/m and 1.50 N (sd 0.10 and 0.03; true 10 and 2), the collapsed one at
-/// 9.97 and 2.02.
+/// 9.97 and 2.02. Collapsed, only each part's block of type `types[i]` is fitted, and
+/// `axis_inflation[i]` gets the inflation of its axis spread ([`position_inflation`]).
 #[allow(clippy::too_many_arguments)]
 fn laplace_kinodynamics(
     ev: &Evidence,
@@ -384,7 +379,7 @@ fn laplace_kinodynamics(
     }
 }
 
-/// The variance inflation factor `(1 + rho) / (1 - rho)` of part `i`'s position residuals
+/// The variance inflation factor ([`ar1_inflation`]) of part `i`'s position residuals
 /// `y_t - f(q_t)` (observed minus guide-mean centre of mass, each axis of the fixed frame a series)
 /// over consecutive evidence frames within windows: perception errs in bursts, so neighbouring
 /// frames carry less independent evidence on the axis than the likelihood's product assumes.
@@ -405,7 +400,7 @@ fn position_inflation(ev: &Evidence, i: usize, s: &BlockSample, pre: &[Displacem
     ar1_inflation(&series)
 }
 
-/// The variance inflation factor `(1 + rho) / (1 - rho)` of the physics prior's deviations
+/// The variance inflation factor ([`ar1_inflation`]) of the physics prior's deviations
 /// `q_t - Psi_t`, with `rho` their lag-1 autocorrelation within windows, from `gq` (the prior's
 /// gradient with respect to each grid coordinate, `-(q_t - Psi_t) / sigma_d^2` inside a window).
 ///

@@ -280,16 +280,11 @@ fn window_prior_n<const N: usize>(jw: &JointInWindow<'_>, win: &WindowEvidence, 
         let psi = traj.as_ref().map_or(q0, |tr| tr[win.frame_substep[k]]);
         let d = D::<N>::from(q[t]) - psi;
         match observed.map(|o| (o.var[t], o.nu)) {
-            Some((r2, nu)) if r2 > 0.0 && !(nu.is_finite() && nu > 0.0) => {
-                let var = dev2 + r2;
-                ll += -(d * d) / (var * 2.0) - num_dual::DualNum::ln(&(var * (2.0 * std::f64::consts::PI))) * 0.5;
-                gq[k] = -d.re / var.re;
-            }
             Some((r2, nu)) if r2 > 0.0 => {
                 let var = dev2 + r2;
-                let lnorm = libm::lgamma(0.5 * (nu + 1.0)) - libm::lgamma(0.5 * nu) - 0.5 * (nu * std::f64::consts::PI).ln();
-                ll += -(num_dual::DualNum::ln(&(d * d / (var * nu) + 1.0)) * (0.5 * (nu + 1.0))) - num_dual::DualNum::ln(&var) * 0.5 + lnorm;
-                gq[k] = -(nu + 1.0) * d.re / (nu * var.re + d.re * d.re);
+                ll += super::likelihood::log_student(d * d / var, num_dual::DualNum::ln(&var) * 0.5, 1, nu);
+                let gaussian = !(nu.is_finite() && nu > 0.0);
+                gq[k] = if gaussian { -d.re / var.re } else { -(nu + 1.0) * d.re / (nu * var.re + d.re * d.re) };
             }
             _ => {
                 ll += -(d * d) / (dev2 * 2.0) - norm;

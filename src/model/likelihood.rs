@@ -286,7 +286,7 @@ fn window_evidence(times: &[f64], frames: Vec<usize>, pushed: Option<usize>, wre
 /// Log-density of a `dim`-variate Student-t with `nu` degrees of freedom (Gaussian when `nu` is
 /// infinite or 0) at squared Mahalanobis distance `m2`, with `half_log_det = 0.5 log |Sigma|`.
 #[inline]
-fn log_student<T: Real>(m2: T, half_log_det: T, dim: usize, nu: f64) -> T {
+pub(crate) fn log_student<T: Real>(m2: T, half_log_det: T, dim: usize, nu: f64) -> T {
     let d = dim as f64;
     if !(nu.is_finite() && nu > 0.0) {
         return -(m2 * 0.5) - half_log_det - c::<T>(0.5 * d * (2.0 * std::f64::consts::PI).ln());

@@ -182,6 +182,12 @@ impl Displacement<f64> {
         Displacement { r: self.r.map(c), t: self.t.map(c) }
     }
 
+    /// The inverse displacement applied to `y`: `R^T (y - t)`.
+    #[inline]
+    pub fn inverse_apply(&self, y: &Vector3<f64>) -> Vector3<f64> {
+        self.r.transpose() * (y - self.t)
+    }
+
     /// `self.lift().compose(other)`, the same value to the last bit, without the derivative
     /// arithmetic of constants (the likelihood's inner loop, [`crate::inference`]).
     #[inline]
