@@ -841,7 +841,7 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
                                     (0..3).max_by(|&a, &b| l[a].total_cmp(&l[b])).unwrap_or(0)
                                 })
                                 .collect();
-                            (structure::max_arborescence(&w), t)
+                            (tree::max_arborescence(&w), t)
                         };
                         laplace_kinodynamics(ev, &layout, &mut theta, &mut inflation, &mut [], &parents, &types, model, false, false);
                     }
@@ -913,7 +913,7 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
     let mut axis_inflation = vec![1.0; n];
     if !ev.windows.is_empty() {
         let types: Vec<usize> = type_logits.iter().map(|l| (0..3).max_by(|&a, &b| l[a].total_cmp(&l[b])).unwrap_or(0)).collect();
-        let tree = structure::max_arborescence(&parent_logits);
+        let tree = tree::max_arborescence(&parent_logits);
         laplace_kinodynamics(ev, &layout, &mut report, &mut inflation, &mut axis_inflation, &tree, &types, model, false, true);
     }
     let joints = summary::joints(ev, model, &layout, &report, &inflation, &axis_inflation, &type_logits, &parent_logits, cfg.summary_samples, &mut rng);
