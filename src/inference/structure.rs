@@ -144,4 +144,3 @@ pub fn initial_structure(ev: &Evidence, model: &ModelConfig, log_w: &[Vec<f64>])
     let type_score = (0..n).map(|i| all_types[i][parent[i]]).collect();
     InitialStructure { parent, parent_score, type_score }
 }
-

@@ -4,15 +4,15 @@
 //! Nodes: 0 is the fixed frame (the root), node `i + 1` is part `i`. The guide holds one row of
 //! parent logits per part. One sample:
 //! 1. **Order** `P`: the root first, then the parts sorted by their depth in the current most
-//!    probable tree (the maximum spanning arborescence of the logits), ties at random. (DP-DAG learns `P` with its own logits; deriving it from the
-//!    parent logits costs no parameters.) No part comes before its most probable parent: one
-//!    that did would have to take another parent in that sample — a microwave standing on a
-//!    slider would hang from the cabinet — and every part below it would then be scored against
-//!    a parent hundreds of nats off, which on `slide_microwave` pushed the door's parent logits
-//!    from the microwave to the slider (and a 1-in-60 chance of that per sample, the Gumbel noise
-//!    this replaced, was enough). A tree that hangs a part from a deeper one is reached in steps:
-//!    every row of logits is updated against all the nodes before it, which include the parts at
-//!    its own depth in half the samples.
+//!    probable tree (the maximum spanning arborescence of the logits), ties at random. (DP-DAG
+//!    learns `P` with its own logits; deriving it from the parent logits costs no parameters.) No
+//!    part comes before its most probable parent: one that did would have to take another parent
+//!    in that sample — a microwave standing on a slider would hang from the cabinet — and every
+//!    part below it would then be scored against a parent hundreds of nats off, which on
+//!    `slide_microwave` pushed the door's parent logits from the microwave to the slider (the
+//!    Gumbel noise of a quarter level this replaced did that in about 1 sample in 55). A tree that
+//!    hangs a part from a deeper one is reached in steps: every row of logits is updated against
+//!    all the nodes before it, which include the parts at its own depth in half the samples.
 //! 2. **DAG entries** `u_ij`: for each part, a Gumbel-softmax (temperature `tau`) over the nodes
 //!    before it in `P`, `u_ij = softmax((log pi_ij + gamma_ij) / tau)`.
 //! 3. **Opportunistic rounding**: the first entry above `delta` (in order `P`) is rounded to 1 and
@@ -342,7 +342,7 @@ mod tests {
 
     /// A chain cabinet -> slider -> microwave -> door, each part sure of its parent: every sample is
     /// that chain (a part drawn before its parent would have to take another). Fails with Gumbel
-    /// noise of a quarter level on the order (about 1 sample in 60 per link breaks the chain).
+    /// noise of a quarter level on the order (about 1 sample in 55 per link breaks the chain).
     #[test]
     fn a_part_never_comes_before_its_most_probable_parent() {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
