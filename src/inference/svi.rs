@@ -91,6 +91,14 @@ pub struct SviConfig {
     pub lr_kinodynamic: f64,
     /// Natural-gradient step of the discrete factors per iteration.
     pub discrete_step: f64,
+    /// Floor of a joint type's natural-gradient target below the part's best type's, per
+    /// iteration \[nats\]. One iteration's conditional ELBO of a block the guide has not yet fitted
+    /// (a warm start's block re-initialised because the new window moved the part) can be 1e5
+    /// nats down — its samples pass through a physics prior a few millimetres wide — and one step
+    /// of `discrete_step` then puts the type's logit 1e4 down, from where it does not return
+    /// before its block has drifted away. 300 nats is still a probability of 1e-130, and a logit
+    /// that low returns within about 60 iterations once its block fits.
+    pub discrete_floor_nats: f64,
     /// Gumbel-softmax temperature and rounding threshold of the tree sampler (paper §3.3).
     pub tau: f64,
     pub delta: f64,
@@ -126,6 +134,7 @@ impl Default for SviConfig {
             lr_coordinate_m: 0.002,
             lr_kinodynamic: 0.0,
             discrete_step: 0.1,
+            discrete_floor_nats: 300.0,
             tau: 0.5,
             delta: 0.5,
             min_dt_s: 0.5,
@@ -800,11 +809,12 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
             let rho = cfg.discrete_step;
             for i in 0..n {
                 let o = layout.type_logits[i];
+                let target: [f64; 3] = std::array::from_fn(|k| log_prior_type[k] + f_type[i][k]);
+                let floor = target.iter().cloned().fold(f64::NEG_INFINITY, f64::max) - cfg.discrete_floor_nats;
                 for k in 0..3 {
-                    theta[o + k] = (1.0 - rho) * theta[o + k] + rho * (log_prior_type[k] + f_type[i][k]);
+                    theta[o + k] = (1.0 - rho) * theta[o + k] + rho * target[k].max(floor);
                 }
                 recentre(&mut theta[o..o + 3], &[0, 1, 2]);
-
             }
         }
 
