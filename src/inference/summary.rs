@@ -57,8 +57,9 @@ pub fn joints(
     let marg = tree::parent_marginals(parent_logits, 2000, rng);
     // The most probable tree: the most frequent hard sample.
     let mut counts: std::collections::HashMap<Vec<usize>, usize> = std::collections::HashMap::new();
+    let sampler = tree::Sampler::new(parent_logits);
     for _ in 0..500 {
-        *counts.entry(tree::sample(parent_logits, 1.0, 0.5, rng).parent).or_default() += 1;
+        *counts.entry(sampler.draw(1.0, 0.5, rng).parent).or_default() += 1;
     }
     let map_tree = counts.into_iter().max_by(|a, b| a.1.cmp(&b.1).then(b.0.cmp(&a.0))).map(|(t, _)| t).unwrap_or(vec![0; n]);
     (0..n)

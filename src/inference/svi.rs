@@ -686,12 +686,17 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
         }
 
         let parent_logits: Vec<Vec<f64>> = (0..n).map(|i| theta[layout.parent_logits[i]..layout.parent_logits[i] + n + 1].to_vec()).collect();
+        // This iteration's particles draw from the same logits (phase 1 keeps the start tree).
+        let sampler = (phase >= 2).then(|| tree::Sampler::new(&parent_logits));
         let pw = 1.0 / cfg.particles as f64;
         let mut block_elbo = 0.0;
         // This iteration's estimates of the per-choice conditional ELBOs.
         let mut f_type = vec![[0.0f64; 3]; n];
         for _ in 0..cfg.particles {
-            let g_tree = if phase == 1 { start_tree.clone() } else { tree::sample(&parent_logits, cfg.tau, cfg.delta, &mut rng) };
+            let g_tree = match &sampler {
+                Some(sampler) => sampler.draw(cfg.tau, cfg.delta, &mut rng),
+                None => start_tree.clone(),
+            };
             // Joint types by Gumbel-softmax; the hard sample is the arg max.
             let chosen_type: Vec<usize> = (0..n)
                 .map(|i| {

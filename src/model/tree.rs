@@ -262,11 +262,34 @@ fn edmonds(nodes: usize, root: usize, edges: &[(usize, usize, f64)]) -> Vec<Opti
 }
 
 /// Draw one tree from the guide's parent logits (`n` rows of `n + 1` entries; the entry of a part
-/// as its own parent is ignored).
+/// as its own parent is ignored). For many draws from the same logits, [`Sampler`] finds the most
+/// probable tree once.
 pub fn sample<R: Rng>(logits: &[Vec<f64>], tau: f64, delta: f64, rng: &mut R) -> TreeSample {
+    Sampler::new(logits).draw(tau, delta, rng)
+}
+
+/// Draws trees from fixed parent logits; holds the depths of the most probable tree, which order
+/// every draw.
+pub struct Sampler<'a> {
+    logits: &'a [Vec<f64>],
+    depth: Vec<usize>,
+}
+
+impl<'a> Sampler<'a> {
+    /// A sampler for `logits` (`n` rows of `n + 1` entries, as [`sample`]'s).
+    pub fn new(logits: &'a [Vec<f64>]) -> Self {
+        Sampler { logits, depth: map_depths(logits) }
+    }
+
+    /// One tree, as [`sample`] draws it.
+    pub fn draw<R: Rng>(&self, tau: f64, delta: f64, rng: &mut R) -> TreeSample {
+        draw(self.logits, &self.depth, tau, delta, rng)
+    }
+}
+
+fn draw<R: Rng>(logits: &[Vec<f64>], depth: &[usize], tau: f64, delta: f64, rng: &mut R) -> TreeSample {
     let n = logits.len();
     let gumbel = Gumbel::new(0.0, 1.0).expect("valid Gumbel");
-    let depth = map_depths(logits);
     // Ties of depth broken at random; a part never comes before its most probable parent.
     let mut order: Vec<(f64, usize)> = (0..n).map(|i| (depth[i] as f64 + rng.random::<f64>(), i)).collect();
     order.sort_by(|a, b| a.0.total_cmp(&b.0));
@@ -303,8 +326,9 @@ pub fn fixed(parent: &[usize]) -> TreeSample {
 pub fn parent_marginals<R: Rng>(logits: &[Vec<f64>], samples: usize, rng: &mut R) -> Vec<Vec<f64>> {
     let n = logits.len();
     let mut p = vec![vec![0.0; n + 1]; n];
+    let sampler = Sampler::new(logits);
     for _ in 0..samples {
-        let t = sample(logits, 1.0, 0.5, rng);
+        let t = sampler.draw(1.0, 0.5, rng);
         for i in 0..n {
             p[i][t.parent[i]] += 1.0 / samples as f64;
         }
