@@ -538,6 +538,13 @@ fn implicit_velocity<T: Real>(m: &[Vec<T>], v: &[T], base: &[T], joints: &[Joint
     wt.iter().zip(&step).map(|(a, b)| *a + *b).collect()
 }
 
+/// [`tanh`] in `f64`, returning ±1 without computing it where that is already its value
+/// (`|x| > 19.1`): a joint moving faster than 19 friction velocities, common during a push.
+#[inline]
+fn smooth_sign(x: f64) -> f64 {
+    if x.abs() > 19.1 { x.signum() } else { tanh(x) }
+}
+
 impl<T: Real> JointDynamics<T> {
     /// Integrate from `(q0, v0)`, the generalised force being `tau[n]` during substep `n` of
     /// length `h` \[s\]; returns the coordinate after every substep.
@@ -573,8 +580,8 @@ impl<T: Real> JointDynamics<T> {
                     return q;
                 }
                 let mut w = vr.clamp(lo, hi);
+                let mut th = smooth_sign(w / vs);
                 for _ in 0..60 {
-                    let th = (w / vs).tanh();
                     let gw = g(w, th);
                     if gw.abs() < 1e-14 * (1.0 + ir * w.abs()) {
                         break;
@@ -582,10 +589,12 @@ impl<T: Real> JointDynamics<T> {
                     if gw > 0.0 { hi = w } else { lo = w }
                     let next = w - gw / dg(w, th);
                     w = if next > lo && next < hi { next } else { 0.5 * (lo + hi) };
+                    th = smooth_sign(w / vs);
                 }
+                // `w` is a constant of the scalar type (its derivatives come from the Newton step
+                // below), so `tanh(w / vs)` is the real one just computed.
                 let wt = c::<T>(w);
-                let th = tanh(wt / vs);
-                let (mut fr_t, mut dfr_t) = (self.friction * th, self.friction * (c::<T>(1.0) - th * th) / vs);
+                let (mut fr_t, mut dfr_t) = (self.friction * th, self.friction * ((1.0 - th * th) / vs));
                 if cr != 0.0 {
                     let aw = if w >= 0.0 { wt } else { -wt };
                     fr_t += self.quadratic_damping * wt * aw;
