@@ -103,6 +103,15 @@ fn inference(c: &mut Criterion) {
     g.bench_function("dynamic BOM-SVI posterior, 3-part hinge cabinet, first window", |b| {
         b.iter(|| svi::fit(black_box(&ev3), &cfg.model, &cfg.inference, None))
     });
+    // The "one 3 s window": the first window (1.65 s: one push and its margins) runs on
+    // to 3 s after its start, into the rest and the first 0.3 s of the next push (on the other
+    // door, which then starts to move).
+    let mut long = run3.windows[0];
+    long.end = long.start + 3.0;
+    let ev3l = Evidence::new(&run3.tracks, &run3.geometry, &[long], &rec.wrenches, &springs, &bom::pipeline::grid(&cfg));
+    g.bench_function("dynamic BOM-SVI posterior, 3-part hinge cabinet, one 3 s window", |b| {
+        b.iter(|| svi::fit(black_box(&ev3l), &cfg.model, &cfg.inference, None))
+    });
     g.bench_function("bom replay, real door track (left_door_001)", |b| {
         b.iter(|| bom::pipeline::replay(std::slice::from_ref(&bag), &cfg).unwrap())
     });
