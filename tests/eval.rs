@@ -51,6 +51,15 @@ fn a_three_part_cabinet_reports_every_part_and_the_baselines() {
     let (hit, of) = (covered[0].as_u64().unwrap(), covered[1].as_u64().unwrap());
     assert_eq!(of, 6);
     assert!(hit >= 4, "{hit} of {of} inside the 90% intervals: {}", m["coverage"]);
+    // The reported kinodynamics are the collapsed posterior's mode: the right door's damping and
+    // friction within 20% of the truth (0.09 and 0.12 when written; 0.47 and 0.36 when that fit
+    // stopped after 12 Newton steps, 8 nats below its mode). The left door's estimates sit
+    // 15-45% high at every seed, for reasons not yet traced.
+    let right = &parts[2];
+    for key in ["damping_rel_error", "friction_rel_error"] {
+        let e = right[key].as_f64().unwrap();
+        assert!(e < 0.2, "right door {key} = {e}: {right}");
+    }
 }
 
 /// A door with a latch on it (frame, door, latch): the latch turns 0.25 rad in one of the four
