@@ -53,11 +53,15 @@ pub fn hessian(post: &mut LogDensity<'_>, x: &[f64]) -> DMatrix<f64> {
     (h.clone() + h.transpose()) * 0.5
 }
 
-/// The mode of `post` from `x`: at most 12 Levenberg-damped Newton steps (each clamped to one
-/// unit per coordinate), stopping when no step improves or the gradient is below 1e-3.
+/// The mode of `post` from `x`: at most [`MODE_STEPS`] Levenberg-damped Newton steps (each
+/// clamped to one unit per coordinate), stopping when no step improves or the gradient is below
+/// 1e-3.
 pub fn mode(post: &mut LogDensity<'_>, x: Vec<f64>) -> Vec<f64> {
-    mode_steps(post, x, 12)
+    mode_steps(post, x, MODE_STEPS)
 }
+
+/// Newton steps of [`mode`].
+pub const MODE_STEPS: usize = 12;
 
 /// [`mode`] with at most `max_steps` Newton steps. Along the damping-friction ridge of a door
 /// the damped steps stay short, and 12 of them can stop several nats below the mode.

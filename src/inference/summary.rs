@@ -54,10 +54,10 @@ pub fn joints(
     rng: &mut ChaCha8Rng,
 ) -> Vec<JointSummary> {
     let n = ev.parts.len();
-    let marg = tree::parent_marginals(parent_logits, 2000, rng);
+    let sampler = tree::Sampler::new(parent_logits);
+    let marg = sampler.parent_marginals(2000, rng);
     // The most probable tree: the most frequent hard sample.
     let mut counts: std::collections::HashMap<Vec<usize>, usize> = std::collections::HashMap::new();
-    let sampler = tree::Sampler::new(parent_logits);
     for _ in 0..500 {
         *counts.entry(sampler.draw(1.0, 0.5, rng).parent).or_default() += 1;
     }

@@ -372,7 +372,7 @@ fn laplace_kinodynamics(
             }
             // The reported (collapsed) fit runs to convergence; the guide's Laplace steps between
             // Adam phases need not, as the next phase continues from them.
-            let x = laplace::mode_steps(&mut post, x, if collapsed { COLLAPSED_MODE_STEPS } else { 12 });
+            let x = laplace::mode_steps(&mut post, x, if collapsed { COLLAPSED_MODE_STEPS } else { laplace::MODE_STEPS });
             theta[kd.mu..kd.mu + kd.dim].copy_from_slice(&x);
             // Covariance: the inverse negative Hessian at the mode, where it is positive definite.
             // (The guide keeps it: the ELBO's expectations are over it. The reported intervals

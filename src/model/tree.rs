@@ -285,6 +285,19 @@ impl<'a> Sampler<'a> {
     pub fn draw<R: Rng>(&self, tau: f64, delta: f64, rng: &mut R) -> TreeSample {
         draw(self.logits, &self.depth, tau, delta, rng)
     }
+
+    /// [`parent_marginals`] of this sampler's logits from `samples` hard draws.
+    pub fn parent_marginals<R: Rng>(&self, samples: usize, rng: &mut R) -> Vec<Vec<f64>> {
+        let n = self.logits.len();
+        let mut p = vec![vec![0.0; n + 1]; n];
+        for _ in 0..samples {
+            let t = self.draw(1.0, 0.5, rng);
+            for i in 0..n {
+                p[i][t.parent[i]] += 1.0 / samples as f64;
+            }
+        }
+        p
+    }
 }
 
 fn draw<R: Rng>(logits: &[Vec<f64>], depth: &[usize], tau: f64, delta: f64, rng: &mut R) -> TreeSample {
@@ -324,16 +337,7 @@ pub fn fixed(parent: &[usize]) -> TreeSample {
 /// Marginal parent probabilities of the guide, by Monte Carlo over the sampler (Gumbel-max, i.e.
 /// the hard samples): `result[i][j] = P(parent of part i = node j)`.
 pub fn parent_marginals<R: Rng>(logits: &[Vec<f64>], samples: usize, rng: &mut R) -> Vec<Vec<f64>> {
-    let n = logits.len();
-    let mut p = vec![vec![0.0; n + 1]; n];
-    let sampler = Sampler::new(logits);
-    for _ in 0..samples {
-        let t = sampler.draw(1.0, 0.5, rng);
-        for i in 0..n {
-            p[i][t.parent[i]] += 1.0 / samples as f64;
-        }
-    }
-    p
+    Sampler::new(logits).parent_marginals(samples, rng)
 }
 
 #[cfg(test)]
