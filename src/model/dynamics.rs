@@ -28,7 +28,7 @@ use num_dual::DualSVec64;
 use serde::{Deserialize, Serialize};
 
 use super::likelihood::WindowEvidence;
-use super::physics::{generalised_force, generalised_inertia, JointDynamics, JointKind, JointLimit};
+use super::physics::{generalised_force, FrictionLaw, generalised_inertia, JointDynamics, JointKind, JointLimit};
 use super::effects::{EffectSet, EffectsConfig};
 use super::{c, JointParams, JointType, Real};
 
@@ -50,8 +50,9 @@ pub struct DynamicsConfig {
     pub deviation_log_sd: f64,
     /// Priors of the effects beyond damping and friction ([`EffectsConfig`]).
     pub effects: EffectsConfig,
-    /// Velocity scale of the smoothed Coulomb friction (m/s or rad/s).
-    pub friction_velocity: f64,
+    /// Regularisation of the Coulomb friction: a joint's velocity scale is
+    /// `min(mu t_f / I, v_max)` ([`crate::model::physics`], module docs).
+    pub friction_law: FrictionLaw,
     /// Integration step of the simulation \[s\].
     pub step_s: f64,
 }
@@ -68,7 +69,7 @@ impl Default for DynamicsConfig {
             deviation_median_m: 0.005,
             deviation_log_sd: 1.0,
             effects: EffectsConfig::default(),
-            friction_velocity: 0.01,
+            friction_law: FrictionLaw::default(),
             step_s: 0.005,
         }
     }
@@ -249,7 +250,7 @@ pub fn simulate_window<T: Real>(jw: &JointInWindow<'_>, win: &WindowEvidence, q0
         }
     }
     let mut traj = vec![q0];
-    traj.extend(jd.simulate(q0 / scale, T::from(0.0), &tau, win.h, cfg.friction_velocity).into_iter().map(|x| x * scale));
+    traj.extend(jd.simulate(q0 / scale, T::from(0.0), &tau, win.h, cfg.friction_law).into_iter().map(|x| x * scale));
     Some(traj)
 }
 
@@ -383,7 +384,7 @@ mod tests {
         let tau: Vec<f64> = (0..n).map(|i| if (i as f64) * h < 0.8 { 6.0 * 0.5 } else { 0.0 }).collect();
         let jd = JointDynamics::new(inertia, 1.5, 0.8, 0.0, 0.0);
         let mut sim = vec![0.0];
-        sim.extend(jd.simulate(0.0, 0.0, &tau, h, cfg.friction_velocity));
+        sim.extend(jd.simulate(0.0, 0.0, &tau, h, cfg.friction_law));
         let q: Vec<f64> = win.frame_substep.iter().map(|&s| sim[s] * 0.3).collect();
         assert!(q[12] > 0.1, "the door turned: {q:?}");
         let at = |b: f64, mu: f64| window_prior(&jw, &win, &q, None, &[b, mu, truth[2], -1.0], &cfg).0;
