@@ -96,14 +96,15 @@ impl Default for FrictionLaw {
 }
 
 impl FrictionLaw {
+    /// Whether `v_max` bounds the velocity scale of a joint with friction `mu` and inertia `inertia`.
+    fn capped(&self, mu: f64, inertia: f64) -> bool {
+        mu > 0.0 && mu * self.relaxation_s / inertia > self.velocity_max
+    }
+
     /// The slope at rest, `mu / v_s` (N·s/m or N·m·s/rad), of a joint with friction `mu` and
     /// generalised inertia `inertia`.
     fn slope<T: Real>(&self, mu: T, inertia: T) -> T {
-        if mu.re() > 0.0 && mu.re() * self.relaxation_s / inertia.re() > self.velocity_max {
-            mu / self.velocity_max
-        } else {
-            inertia / self.relaxation_s
-        }
+        if self.capped(mu.re(), inertia.re()) { mu / self.velocity_max } else { inertia / self.relaxation_s }
     }
 }
 
@@ -621,7 +622,7 @@ impl<T: Real> JointDynamics<T> {
         // Friction's velocity scale `v_s = min(mu t_f / I, v_max)` (module docs); with no
         // friction any positive scale will do, the friction term being 0.
         let tf = friction;
-        let capped = fr > 0.0 && fr * tf.relaxation_s / ir > tf.velocity_max;
+        let capped = tf.capped(fr, ir);
         let vs = if capped { tf.velocity_max } else if fr > 0.0 { fr * tf.relaxation_s / ir } else { 1.0 };
         // `1 / v_s` in the scalar type: `I / (mu t_f)`.
         let inv_vs = if capped {
