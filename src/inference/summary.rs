@@ -36,8 +36,9 @@ pub fn softmax(z: &[f64]) -> Vec<f64> {
 
 /// Summaries of every joint. `type_logits` and `parent_logits` are the (averaged) discrete
 /// guide; `samples` the number of draws used for spreads; `inflation[i][type]` the variance
-/// inflation factor of the physics prior's correlated deviations (see
-/// `svi::variance_inflation`), by which the kinodynamic intervals are widened: the physics part
+/// inflation factor of the physics prior's correlated deviations, or of the windows'
+/// disagreement where that is larger (see `svi::variance_inflation`, `svi::cluster_inflation`),
+/// by which the kinodynamic intervals are widened: the physics part
 /// of the guide's precision (its inverse covariance minus the standard-normal prior's identity)
 /// is divided by it.
 #[allow(clippy::too_many_arguments)]

@@ -38,7 +38,7 @@
 
 use std::time::Instant;
 
-use nalgebra::{Matrix3, Vector3};
+use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
 use num_dual::DualSVec64;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -360,7 +360,7 @@ fn laplace_kinodynamics(
             // Log posterior of the block (physics prior + N(0, I)) and its gradient.
             let mut post = |xi: &[f64]| {
                 s.kd = Some((vec![0.0; kd.dim], xi.to_vec()));
-                let (l, g, _) = dynamics_pass(ev, i, &s, observed.as_ref(), &pre, &desc, &chosen, &transforms, model);
+                let (l, g, _) = dynamics_pass(ev, i, &s, observed.as_ref(), &pre, &desc, &chosen, &transforms, model, None);
                 let l = l - 0.5 * xi.iter().map(|x| x * x).sum::<f64>();
                 let g: Vec<f64> = g.iter().zip(xi).map(|(g, x)| g - x).collect();
                 (l, g)
@@ -376,12 +376,15 @@ fn laplace_kinodynamics(
             theta[kd.mu..kd.mu + kd.dim].copy_from_slice(&x);
             // Covariance: the inverse negative Hessian at the mode, where it is positive definite.
             // (The guide keeps it: the ELBO's expectations are over it. The reported intervals
-            // also allow for the deviations' correlation, see `variance_inflation`.)
+            // also allow for the deviations' correlation and the windows' disagreement, see
+            // `variance_inflation` and `cluster_inflation`.)
             let neg_h = -laplace::hessian(&mut post, &x);
             s.kd = Some((vec![0.0; kd.dim], x.clone()));
-            let (_, _, gq) = dynamics_pass(ev, i, &s, observed.as_ref(), &pre, &desc, &chosen, &transforms, model);
-            inflation[i][b.joint.index()] = variance_inflation(ev, &gq);
-            tracing::debug!("part {} {:?}: variance inflation {:.2}", ev.parts[i].label, b.joint, inflation[i][b.joint.index()]);
+            let mut scores = Vec::new();
+            let (_, _, gq) = dynamics_pass(ev, i, &s, observed.as_ref(), &pre, &desc, &chosen, &transforms, model, Some(&mut scores));
+            let (ar1, robust) = (variance_inflation(ev, &gq), cluster_inflation(&neg_h, &scores));
+            tracing::debug!("part {} {:?}: variance inflation AR(1) {ar1:.2}, window-robust {robust:.2}", ev.parts[i].label, b.joint);
+            inflation[i][b.joint.index()] = ar1.max(robust);
             if let Some(cov) = neg_h.clone().cholesky().map(|c| c.inverse()) {
                 if let Some(l) = cov.cholesky() {
                     let l = l.l();
@@ -416,6 +419,64 @@ fn position_inflation(ev: &Evidence, i: usize, s: &BlockSample, pre: &[Displacem
     }
     ar1_inflation(&series)
 }
+
+/// The variance inflation factor that the windows' disagreement calls for: the least `c >= 1`
+/// for which the reported covariance `(H / c + I)^-1` (see [`summary::joints`]) gives damping and
+/// friction (standardised coordinates 0 and 1) at least the variances of the cluster-robust
+/// sandwich `P^-1 (G / (G - 1) sum_w g_w g_w^T + I) P^-1`, with `P = H + I` the negative Hessian
+/// `neg_h` of the block's log posterior at the mode (`H` the physics prior's, `I` the
+/// standard-normal prior's) and `g_w` the physics prior's score of each of the `G` windows that
+/// simulate the joint (`scores`, from [`dynamics_pass`]).
+///
+/// Why: where the physics misses something the bags' simulator has, the deviations are not only
+/// correlated within a window (which [`variance_inflation`] allows for) but biased the same way
+/// for a whole push, and pushes at other speeds or forces pull the parameters along the
+/// damping-friction ridge in different directions. Windows are independent given the parameters,
+/// so the spread of their scores measures the information the data really hold (the sandwich
+/// covariance of a misspecified model: Huber 1967; White 1982; with windows as clusters and the
+/// small-sample factor `G / (G - 1)`, Cameron and Miller, *J. Human Resources* 50(2), 2015; for
+/// the Bayesian use, Müller, *Econometrica* 81(5), 2013). Where the model holds, the sandwich
+/// equals the Laplace covariance on average and `c` stays near 1. 1 with fewer than two such
+/// windows or a Hessian that is not positive definite.
+fn cluster_inflation(neg_h: &DMatrix<f64>, scores: &[Vec<f64>]) -> f64 {
+    // A window that does not simulate the joint scores nothing on damping and friction.
+    let used: Vec<&Vec<f64>> = scores.iter().filter(|g| g.len() >= 2 && (g[0] != 0.0 || g[1] != 0.0)).collect();
+    let (g, d) = (used.len(), neg_h.nrows());
+    if g < 2 || d < 2 {
+        return 1.0;
+    }
+    let eye = DMatrix::<f64>::identity(d, d);
+    let Some(p_inv) = neg_h.clone().cholesky().map(|c| c.inverse()) else { return 1.0 };
+    let mut meat = eye.clone();
+    for s in &used {
+        let v = DVector::from_column_slice(s);
+        meat += &v * v.transpose() * (g as f64 / (g as f64 - 1.0));
+    }
+    let sandwich = &p_inv * meat * &p_inv;
+    let h = neg_h - &eye;
+    let reported = |c: f64| (&h / c + &eye).cholesky().map(|l| l.inverse());
+    let covers = |c: f64| reported(c).is_some_and(|v| (0..2).all(|j| v[(j, j)] >= sandwich[(j, j)]));
+    if covers(1.0) {
+        return 1.0;
+    }
+    // Bisection on log c: the reported variances grow with c (H positive semi-definite).
+    let (mut lo, mut hi) = (0.0f64, MAX_INFLATION.ln());
+    if !covers(MAX_INFLATION) {
+        return MAX_INFLATION;
+    }
+    for _ in 0..40 {
+        let mid = 0.5 * (lo + hi);
+        if covers(mid.exp()) {
+            hi = mid;
+        } else {
+            lo = mid;
+        }
+    }
+    hi.exp()
+}
+
+/// The largest variance inflation [`cluster_inflation`] reports.
+const MAX_INFLATION: f64 = 1e4;
 
 /// The variance inflation factor ([`ar1_inflation`]) of the physics prior's deviations
 /// `q_t - Psi_t`, with `rho` their lag-1 autocorrelation within windows, from `gq` (the prior's
@@ -471,7 +532,9 @@ fn lag1_autocorrelation(series: &[Vec<f64>]) -> Option<f64> {
 }
 
 /// The physics prior of block `k` of part `i` over all windows (dynamic mode) and its gradients:
-/// `(log prior, d/d xi_kd, d/d q_t per grid frame)`.
+/// `(log prior, d/d xi_kd, d/d q_t per grid frame)`. With `scores`, also each window's share of
+/// `d/d xi_kd` (one entry per window, the rest term before a window counted in it; zero where the
+/// window does not simulate the joint, but for the deviation scale's).
 #[allow(clippy::too_many_arguments)]
 fn dynamics_pass(
     ev: &Evidence,
@@ -483,11 +546,16 @@ fn dynamics_pass(
     chosen: &[&BlockSample],
     transforms: &[Vec<Displacement<f64>>],
     model: &ModelConfig,
+    mut scores: Option<&mut Vec<Vec<f64>>>,
 ) -> (f64, Vec<f64>, Vec<f64>) {
     let Some((_, xi)) = &s.kd else { return (0.0, vec![], vec![]) };
     let dyncfg = &model.dynamics;
     let (mut l, mut gx, mut gq) = (0.0, vec![0.0; xi.len()], vec![0.0; ev.len()]);
+    if let Some(sc) = scores.as_deref_mut() {
+        sc.clear();
+    }
     for (w, win) in ev.windows.iter().enumerate() {
+        let gx_before = gx.clone();
         // Between windows no force acts: the joint rests where the last window left it, up to
         // the same deviation scale.
         if w > 0 {
@@ -534,6 +602,9 @@ fn dynamics_pass(
         }
         for (k, &t) in win.frames.iter().enumerate() {
             gq[t] += gqw[k];
+        }
+        if let Some(sc) = scores.as_deref_mut() {
+            sc.push(gx.iter().zip(&gx_before).map(|(a, b)| a - b).collect());
         }
     }
     (l, gx, gq)
@@ -584,8 +655,8 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
         }
         recentre(&mut theta[o..o + 3], &[0, 1, 2]);
     }
-    // Per part and joint type, the variance inflation of the physics prior's deviations at the
-    // last Laplace update (1: none, or kinematic mode); it widens the reported intervals only.
+    // Per part and joint type, the variance inflation of the physics prior's deviations (or of
+    // the windows' disagreement) at the last Laplace update (1: none, or kinematic mode); it widens the reported intervals only.
     let mut inflation = vec![[1.0; 3]; n];
     let start_tree = tree::fixed(&start.parent);
     let start_types: Vec<usize> = start.type_score.iter().map(|s| (0..3).max_by(|&a, &b| s[a].total_cmp(&s[b])).unwrap_or(0)).collect();
@@ -740,7 +811,7 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
                     let (l, gx, mut gq) = block_pass(ev, i, b.joint, &s.xi, &s.q, &pre, &subtree, model);
                     let mut f = l + analytic[i][k];
                     if let (Some(kd), Some((eps, _))) = (b.kd, &s.kd) {
-                        let (ld, gkd, gqd) = dynamics_pass(ev, i, s, None, &pre, &desc, &chosen, &transforms, model);
+                        let (ld, gkd, gqd) = dynamics_pass(ev, i, s, None, &pre, &desc, &chosen, &transforms, model, None);
                         f += ld;
                         kd.add_sample_grad(&theta, &gkd, eps, pw, &mut grad);
                         for (a, b) in gq.iter_mut().zip(&gqd) {
@@ -992,6 +1063,24 @@ mod tests {
             assert!(c >= 1.0 && (rho == 0.0 || c > 0.8 * (1.0 + rho - bias) / (1.0 - rho + bias)), "rho {rho}: inflation {c:.2}");
         }
         assert_eq!(ar1_inflation(&[vec![1.0, 2.0, 3.0]]), 1.0, "too few values");
+    }
+
+    /// The window-robust inflation against its closed form: physics precision `H = 4 I` on two
+    /// parameters (`neg_h = 5 I`), windows' scores `+-2` along each, so the sandwich variance is
+    /// `(4/3 * 8 + 1) / 25 = 7/15` and `1 / (4 / c + 1)` reaches it at `c = 7/2`. Scores that
+    /// agree with `H` call for none, and one window cannot tell.
+    #[test]
+    fn cluster_inflation_matches_the_sandwich() {
+        let neg_h = DMatrix::<f64>::identity(2, 2) * 5.0;
+        let spread = [vec![2.0, 0.0], vec![-2.0, 0.0], vec![0.0, 2.0], vec![0.0, -2.0]];
+        let c = cluster_inflation(&neg_h, &spread);
+        assert!((c - 3.5).abs() < 1e-6, "inflation {c}");
+        // sum g g^T * 4/3 = 8/3 I < H: the windows agree better than the model expects.
+        let agree = [vec![1.0, 0.0], vec![-1.0, 0.0], vec![0.0, 1.0], vec![0.0, -1.0]];
+        assert_eq!(cluster_inflation(&neg_h, &agree), 1.0);
+        // Windows that do not simulate the joint (no score on damping or friction) do not count.
+        let neg_h3 = DMatrix::<f64>::identity(3, 3) * 5.0;
+        assert_eq!(cluster_inflation(&neg_h3, &[vec![2.0, 0.0, 0.0], vec![0.0, 0.0, 1.0]]), 1.0);
     }
 
     /// The finite-length factor is the variance of the mean of AR(1) series (Monte Carlo), and
