@@ -131,7 +131,8 @@ fn undeclared_effect(name: &str) -> Option<&'static str> {
 /// large; the hinge springs of 0.8 N m/rad move doors held by 2 N m of friction little, and their
 /// residual is small to begin with: measured 0.78 of it, 0.84 once the joint types' step targets
 /// got their floor, 0.72 once the reported kinodynamics ran to their mode, 0.77 (the right door;
-/// the left one's unexplained) with friction regularised by its relaxation time, so at most 0.9 here);
+/// the left one's unexplained) with friction regularised by its relaxation time, 0.71 with the
+/// reported posterior averaged over the last iterations, so at most 0.9 here);
 /// without one, no effect is added.
 fn criticism_finds_the_undeclared_effect(name: &str, run: &bom::pipeline::Run) {
     let added: Vec<_> = run.findings.iter().filter(|f| f.effect.is_some()).collect();
