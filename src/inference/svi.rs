@@ -538,8 +538,8 @@ fn lag1_autocorrelation(series: &[Vec<f64>]) -> Option<f64> {
 
 /// The physics prior of block `k` of part `i` over all windows (dynamic mode) and its gradients:
 /// `(log prior, d/d xi_kd, d/d q_t per grid frame)`. With `scores`, also each window's share of
-/// `d/d xi_kd` (one entry per window, the rest term before a window counted in it; zero where the
-/// window does not simulate the joint, but for the deviation scale's).
+/// `d/d xi_kd` (one entry per window, the rest term before a window counted in it; zero on damping
+/// and friction where the window does not simulate the joint).
 #[allow(clippy::too_many_arguments)]
 fn dynamics_pass(
     ev: &Evidence,
@@ -560,7 +560,7 @@ fn dynamics_pass(
         sc.clear();
     }
     for (w, win) in ev.windows.iter().enumerate() {
-        let gx_before = gx.clone();
+        let gx_before = scores.is_some().then(|| gx.clone());
         // Between windows no force acts: the joint rests where the last window left it, up to
         // the same deviation scale.
         if w > 0 {
@@ -608,8 +608,8 @@ fn dynamics_pass(
         for (k, &t) in win.frames.iter().enumerate() {
             gq[t] += gqw[k];
         }
-        if let Some(sc) = scores.as_deref_mut() {
-            sc.push(gx.iter().zip(&gx_before).map(|(a, b)| a - b).collect());
+        if let (Some(sc), Some(before)) = (scores.as_deref_mut(), &gx_before) {
+            sc.push(gx.iter().zip(before).map(|(a, b)| a - b).collect());
         }
     }
     (l, gx, gq)
@@ -661,7 +661,8 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
         recentre(&mut theta[o..o + 3], &[0, 1, 2]);
     }
     // Per part and joint type, the variance inflation of the physics prior's deviations (or of
-    // the windows' disagreement) at the last Laplace update (1: none, or kinematic mode); it widens the reported intervals only.
+    // the windows' disagreement) at the last Laplace update (1: none, or kinematic mode); it
+    // widens the reported intervals only.
     let mut inflation = vec![[1.0; 3]; n];
     let start_tree = tree::fixed(&start.parent);
     let start_types: Vec<usize> = start.type_score.iter().map(|s| (0..3).max_by(|&a, &b| s[a].total_cmp(&s[b])).unwrap_or(0)).collect();
