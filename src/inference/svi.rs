@@ -710,8 +710,7 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
     let mut last_logits: Option<Vec<f64>> = None;
     let mut final_left: Option<usize> = None;
     let mut f_avg = vec![[0.0f64; 3]; n];
-    let mut avg_type = vec![[0.0f64; 3]; n];
-    let mut avg_parent = vec![vec![0.0f64; n + 1]; n];
+    // Sum of the guide's parameters over the final phase (Polyak, see the module docs).
     let mut avg_count = 0usize;
     let mut avg_theta = vec![0.0f64; layout.len];
     let mut iters = 0;
@@ -911,14 +910,6 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
 
         match final_left.as_mut() {
             Some(left) => {
-                for i in 0..n {
-                    for k in 0..3 {
-                        avg_type[i][k] += theta[layout.type_logits[i] + k];
-                    }
-                    for j in 0..=n {
-                        avg_parent[i][j] += theta[layout.parent_logits[i] + j];
-                    }
-                }
                 for (a, t) in avg_theta.iter_mut().zip(&theta) {
                     *a += t;
                 }
@@ -991,8 +982,11 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
         }
     }
 
-    let type_logits: Vec<[f64; 3]> = avg_type.iter().map(|a| a.map(|v| v / avg_count as f64)).collect();
-    let parent_logits: Vec<Vec<f64>> = avg_parent.iter().map(|a| a.iter().map(|v| v / avg_count as f64).collect()).collect();
+    // The reported posterior is the final phase's average of the guide (the phase runs at least
+    // once); a later window warm-starts from the guide's last iterate.
+    let mut report: Vec<f64> = avg_theta.iter().map(|a| a / avg_count as f64).collect();
+    let type_logits: Vec<[f64; 3]> = (0..n).map(|i| std::array::from_fn(|k| report[layout.type_logits[i] + k])).collect();
+    let parent_logits: Vec<Vec<f64>> = (0..n).map(|i| report[layout.parent_logits[i]..layout.parent_logits[i] + n + 1].to_vec()).collect();
     // ELBO of the fitted guide: per part E_q(type)[conditional ELBO] - KL(q(type) || p(type)),
     // plus the tree's prior and entropy terms (per-part categoricals).
     let mut elbo = 0.0;
@@ -1011,9 +1005,7 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
         tracing::debug!("part {}: conditional ELBOs (rigid, prismatic, revolute) {f:.1?}, parent logits {:.1?}", ev.parts[i].label, parent_logits[i]);
     }
     // The reported kinodynamics: collapsed Laplace (see `laplace_kinodynamics`) under the most
-    // probable tree and joint types, on the final phase's average of the guide (Polyak-Ruppert,
-    // see the module docs; a later window warm-starts from the guide's last iterate).
-    let mut report: Vec<f64> = if avg_count > 0 { avg_theta.iter().map(|a| a / avg_count as f64).collect() } else { theta.clone() };
+    // probable tree and joint types, on the averaged guide.
     let mut axis_inflation = vec![1.0; n];
     if !ev.windows.is_empty() {
         let types: Vec<usize> = type_logits.iter().map(|l| (0..3).max_by(|&a, &b| l[a].total_cmp(&l[b])).unwrap_or(0)).collect();
