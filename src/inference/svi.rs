@@ -485,7 +485,8 @@ const MAX_INFLATION: f64 = 1e4;
 
 /// The variance inflation factor ([`ar1_inflation`]) of the physics prior's deviations
 /// `q_t - Psi_t`, with `rho` their lag-1 autocorrelation within windows, from `gq` (the prior's
-/// gradient with respect to each grid coordinate, `-(q_t - Psi_t) / sigma_d^2` inside a window).
+/// gradient with respect to each grid coordinate, `-(q_t - Psi_t) / sigma_d^2` inside a window;
+/// with Student-t deviations the same residuals down-weighted where they are large).
 ///
 /// Why: the physics prior (`q_t ~ N(Psi_t, sigma_d^2)`, frames independent) counts every frame
 /// as new evidence about the kinodynamic parameters, but where the model misses (a simulator's

@@ -14,10 +14,14 @@
 //! joint starts at rest at its coordinate `q_{w,0}` and Ψ simulates it under the measured wrench
 //! with [`JointDynamics`] (the joint's subtree locked, its parent static during the window); the
 //! coordinates at the window's grid frames deviate from the simulated trajectory as
-//! `q_t ~ N(Psi_t, sigma_d^2)`. The paper adds noise to the observations only; the deviation term
-//! keeps what the physics lacks (soft contact, the robot's compliance, an effect not modelled)
-//! from bending the kinematic fit — the axis is still fitted to the observations through `q_t`,
-//! and the physics to `q_t`; as `sigma_d -> 0` it is the paper's deterministic simulation.
+//! `q_t ~ N(Psi_t, sigma_d^2)`, taken Student-t with `deviation_nu` degrees of freedom. The paper
+//! adds noise to the observations only; the deviation term keeps what the physics lacks (soft
+//! contact, the robot's compliance, an effect not modelled) from bending the kinematic fit — the
+//! axis is still fitted to the observations through `q_t`, and the physics to `q_t`; as
+//! `sigma_d -> 0` it is the paper's deterministic simulation. The heavy tails are for the same
+//! misses: a frame the physics cannot explain, or a guide sample of the parameters that sends the
+//! simulation far off (a mass much too small), costs a logarithm of its distance instead of its
+//! square, so that it neither dominates the ELBO's gradient nor drags the coordinates after it.
 //!
 //! Gradients with respect to the kinodynamic parameters and `q_{w,0}` come from dual numbers
 //! through the simulation; the joint's geometry enters the simulation as sampled constants (the
@@ -48,6 +52,10 @@ pub struct DynamicsConfig {
     /// Deviation of the coordinates from the simulated trajectory [m of centre-of-mass path].
     pub deviation_median_m: f64,
     pub deviation_log_sd: f64,
+    /// Student-t degrees of freedom of that deviation (0 or infinite: Gaussian). Heavy tails keep
+    /// a few frames the physics cannot explain (a latch's contact, a sampled mass far too small)
+    /// from dominating the fit and its gradient.
+    pub deviation_nu: f64,
     /// Priors of the effects beyond damping and friction ([`EffectsConfig`]).
     pub effects: EffectsConfig,
     /// Regularisation of the Coulomb friction: a joint's velocity scale is
@@ -68,6 +76,7 @@ impl Default for DynamicsConfig {
             mass_log_sd: 1.5,
             deviation_median_m: 0.005,
             deviation_log_sd: 1.0,
+            deviation_nu: 4.0,
             effects: EffectsConfig::default(),
             friction_law: FrictionLaw::default(),
             step_s: 0.005,
@@ -183,11 +192,12 @@ pub struct JointInWindow<'a> {
 }
 
 /// The physics prior of one joint in one window and its gradient: returns
-/// `(sum_t log N(q_t; Psi_t, sigma_d^2), d/d xi_kd, d/d q_t)` over the window's frames after its
+/// `(sum_t log p(q_t; Psi_t, sigma_d), d/d xi_kd, d/d q_t)` over the window's frames after its
 /// first, where `q[t]` are the joint's coordinates on the evidence grid [m of path] and `xi` its
 /// standardised kinodynamic parameters (layout of [`decode`] for `jw.effects`). `d/d q_t` has one
 /// entry per frame of the window (the first is the derivative with respect to `q_{w,0}` through
-/// the simulation).
+/// the simulation). `p` is Student-t with `cfg.deviation_nu` degrees of freedom and scale
+/// `sigma_d` (Gaussian when that is 0).
 ///
 /// With `observed`, `q` are the *observed* coordinates and the result is their likelihood with
 /// the latent coordinates integrated out: `q_t ~ N(Psi_t, sigma_d^2)` and `y_t ~ N(q_t, r_t^2)`
@@ -263,6 +273,16 @@ pub struct Observed {
     pub nu: f64,
 }
 
+/// `d/dd log p(d)` of a one-dimensional Student-t with scale² `var` and `nu` degrees of freedom
+/// (Gaussian when `nu` is 0 or infinite).
+fn student_score(d: f64, var: f64, nu: f64) -> f64 {
+    if nu.is_finite() && nu > 0.0 {
+        -(nu + 1.0) * d / (nu * var + d * d)
+    } else {
+        -d / var
+    }
+}
+
 fn window_prior_n<const N: usize>(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64], observed: Option<&Observed>, xi: &[f64], cfg: &DynamicsConfig) -> (f64, Vec<f64>, Vec<f64>) {
     type D<const N: usize> = DualSVec64<N>;
     let nk = xi.len();
@@ -274,23 +294,22 @@ fn window_prior_n<const N: usize>(jw: &JointInWindow<'_>, win: &WindowEvidence, 
     // No force on the subtree, no spring, no gravity: the joint stays where it is.
     let traj = simulate_window(jw, win, q0, &kp, cfg);
     let dev2 = kp.deviation * kp.deviation;
-    let norm = num_dual::DualNum::ln(&(dev2 * (2.0 * std::f64::consts::PI))) * 0.5;
+    let half_log_dev2 = num_dual::DualNum::ln(&dev2) * 0.5;
     let mut ll = D::<N>::from(0.0);
     let mut gq = vec![0.0; frames.len()];
     for (k, &t) in frames.iter().enumerate().skip(1) {
         let psi = traj.as_ref().map_or(q0, |tr| tr[win.frame_substep[k]]);
         let d = D::<N>::from(q[t]) - psi;
         match observed.map(|o| (o.var[t], o.nu)) {
-            Some((r2, nu)) if r2 > 0.0 => {
+            Some((r2, obs_nu)) if r2 > 0.0 => {
                 let var = dev2 + r2;
-                ll += super::likelihood::log_student(d * d / var, num_dual::DualNum::ln(&var) * 0.5, 1, nu);
-                let gaussian = !(nu.is_finite() && nu > 0.0);
-                gq[k] = if gaussian { -d.re / var.re } else { -(nu + 1.0) * d.re / (nu * var.re + d.re * d.re) };
+                ll += super::likelihood::log_student(d * d / var, num_dual::DualNum::ln(&var) * 0.5, 1, obs_nu);
+                gq[k] = student_score(d.re, var.re, obs_nu);
             }
             _ => {
-                ll += -(d * d) / (dev2 * 2.0) - norm;
+                ll += super::likelihood::log_student(d * d / dev2, half_log_dev2, 1, cfg.deviation_nu);
                 // Direct derivative with respect to q_t (the dual part carries d/d q_{w,0} via psi).
-                gq[k] = -d.re / dev2.re;
+                gq[k] = student_score(d.re, dev2.re, cfg.deviation_nu);
             }
         }
     }
@@ -340,7 +359,9 @@ mod tests {
         // Latent coordinates, and observed ones with their variance (Student-t, latent ones
         // integrated out), a few millimetres of perception noise.
         let var: Vec<f64> = (0..q.len()).map(|t| (0.002 + 0.001 * (t % 3) as f64).powi(2)).collect();
-        check_gradients_with(jw, win, q, None, xi, cfg);
+        for deviation_nu in [4.0, 0.0] {
+            check_gradients_with(jw, win, q, None, xi, &DynamicsConfig { deviation_nu, ..cfg.clone() });
+        }
         for nu in [4.0, 0.0] {
             check_gradients_with(jw, win, q, Some(&Observed { var: var.clone(), nu }), xi, cfg);
         }
