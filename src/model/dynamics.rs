@@ -197,7 +197,7 @@ pub struct JointInWindow<'a> {
 /// standardised kinodynamic parameters (layout of [`decode`] for `jw.effects`). `d/d q_t` has one
 /// entry per frame of the window (the first is the derivative with respect to `q_{w,0}` through
 /// the simulation). `p` is Student-t with `cfg.deviation_nu` degrees of freedom and scale
-/// `sigma_d` (Gaussian when that is 0).
+/// `sigma_d` (Gaussian when `deviation_nu` is 0).
 ///
 /// With `observed`, `q` are the *observed* coordinates and the result is their likelihood with
 /// the latent coordinates integrated out: `q_t ~ N(Psi_t, sigma_d^2)` and `y_t ~ N(q_t, r_t^2)`
