@@ -77,7 +77,7 @@ pub fn joints(
                 let l = kd.factor(theta);
                 let cov = inflated(&l * l.transpose(), inflation[i][axis_type.index()]);
                 let est = |j: usize, (median, sd_log): (f64, f64)| {
-                    let (median, sd, q05, q95) = dynamics::log_normal_summary(median, sd_log, mean[j], cov[(j, j)].sqrt());
+                    let (median, sd, q05, q95) = dynamics::log_normal_summary(median, sd_log, mean[j], cov[(j, j)].sqrt(), model.dynamics.discrepancy_log_sd);
                     Estimate { median, sd, q05, q95 }
                 };
                 let [d, f, m] = dynamics::prior_scales(axis_type, &model.dynamics);

@@ -56,6 +56,13 @@ pub struct DynamicsConfig {
     /// a few frames the physics cannot explain (a latch's contact, a sampled mass far too small)
     /// from dominating the fit and its gradient.
     pub deviation_nu: f64,
+    /// Model discrepancy of the reported damping, friction and mass: a log-sd added in quadrature
+    /// to the posterior's (0: none). The physics engine is not the world — here MuJoCo's soft
+    /// constraints against our regularised Coulomb law and locked subtrees — so the parameters
+    /// the world acts with are taken as the fitted ones times `exp(delta)`, `delta ~ N(0, s^2)`,
+    /// a discrepancy the data cannot identify (Kennedy & O'Hagan, JRSS B 63(3), 2001); its
+    /// marginal widens each log-normal interval and moves no median. See [`log_normal_summary`].
+    pub discrepancy_log_sd: f64,
     /// Priors of the effects beyond damping and friction ([`EffectsConfig`]).
     pub effects: EffectsConfig,
     /// Regularisation of the Coulomb friction: a joint's velocity scale is
@@ -77,6 +84,7 @@ impl Default for DynamicsConfig {
             deviation_median_m: 0.005,
             deviation_log_sd: 1.0,
             deviation_nu: 4.0,
+            discrepancy_log_sd: 0.1,
             effects: EffectsConfig::default(),
             friction_law: FrictionLaw::default(),
             step_s: 0.005,
@@ -147,10 +155,11 @@ pub fn decode<T: Real>(joint: JointType, xi: &[T], effects: &EffectSet, cfg: &Dy
     }
 }
 
-/// Median, sd and 90% interval of a log-normal parameter `median * exp(sd_log * xi)` with
-/// `xi ~ N(m, s^2)`.
-pub fn log_normal_summary(median: f64, sd_log: f64, m: f64, s: f64) -> (f64, f64, f64, f64) {
-    let (mu, sigma) = (median.ln() + sd_log * m, sd_log * s);
+/// Median, sd and 90% interval of a log-normal parameter `median * exp(sd_log * xi + delta)`
+/// with `xi ~ N(m, s^2)` and an independent model discrepancy `delta ~ N(0, discrepancy^2)`
+/// ([`DynamicsConfig::discrepancy_log_sd`]; 0 for none).
+pub fn log_normal_summary(median: f64, sd_log: f64, m: f64, s: f64, discrepancy: f64) -> (f64, f64, f64, f64) {
+    let (mu, sigma) = (median.ln() + sd_log * m, (sd_log * s).hypot(discrepancy));
     let med = mu.exp();
     let sd = ((sigma * sigma).exp() - 1.0).max(0.0).sqrt() * (mu + sigma * sigma / 2.0).exp();
     (med, sd, (mu - 1.644_853_6 * sigma).exp(), (mu + 1.644_853_6 * sigma).exp())
@@ -415,8 +424,14 @@ mod tests {
         }
         // Gradient against central finite differences, away from the optimum.
         check_gradients(&jw, &win, &q, &[0.2, -0.3, 0.1, -0.5], &cfg);
-        let (m, sd, lo, hi) = log_normal_summary(2.0, 0.5, 0.0, 0.0);
+        let (m, sd, lo, hi) = log_normal_summary(2.0, 0.5, 0.0, 0.0, 0.0);
         assert!((m - 2.0).abs() < 1e-12 && sd == 0.0 && lo == hi);
+        // The discrepancy adds in quadrature on the log scale and keeps the median.
+        let (m, _, lo, hi) = log_normal_summary(2.0, 0.5, 0.1, 0.3, 0.2);
+        let (m0, _, lo0, hi0) = log_normal_summary(2.0, 0.5, 0.1, 0.3, 0.0);
+        assert_eq!(m, m0);
+        let half = |l: f64, h: f64| (h.ln() - l.ln()) / (2.0 * 1.644_853_6);
+        assert!((half(lo0, hi0) - 0.15).abs() < 1e-12 && (half(lo, hi) - 0.25).abs() < 1e-12, "{lo} {hi}");
     }
 
     /// With every effect on (spring, both stops, gravity on a tilted hinge, quadratic damping) the
