@@ -112,6 +112,11 @@ pub struct SviConfig {
     pub min_dt_s: f64,
     pub min_frames: usize,
     pub max_frames: usize,
+    /// Dynamic mode: grid frames up to this long after a window \[s\] (and before the next) join
+    /// the evidence as the joint at rest, outside the physics window (see [`Grid::rest_after_s`]);
+    /// 0, the default, for none (README, "Known limits": 0.5 fixes `adroit_door`'s latch but
+    /// costs IdE on recordings not shipped).
+    pub rest_after_s: f64,
     /// Initial guide sds: standardised kinematic parameters, coordinates \[m\], standardised
     /// kinodynamic parameters.
     pub init_global_sd: f64,
@@ -143,6 +148,7 @@ impl Default for SviConfig {
             tau: 0.5,
             delta: 0.5,
             min_dt_s: 0.5,
+            rest_after_s: 0.0,
             min_frames: 20,
             max_frames: 200,
             init_global_sd: 0.05,
@@ -572,6 +578,19 @@ fn dynamics_pass(
             gq[b] -= d / (sd * sd);
             gq[a] += d / (sd * sd);
             gx[3] += (d * d / (sd * sd) - 1.0) * dyncfg.deviation_log_sd;
+        }
+        // After the window the joint rests where the physics window left it (rest frames).
+        if let Some(&a) = win.frames.last() {
+            if !win.rest.is_empty() {
+                let sd = dynamics::decode::<f64>(s.params.joint, xi, &ev.effects[i], dyncfg).deviation;
+                for &b in &win.rest {
+                    let d = s.q[b] - s.q[a];
+                    l += -(d * d) / (2.0 * sd * sd) - (sd * (2.0 * std::f64::consts::PI).sqrt()).ln();
+                    gq[b] -= d / (sd * sd);
+                    gq[a] += d / (sd * sd);
+                    gx[3] += (d * d / (sd * sd) - 1.0) * dyncfg.deviation_log_sd;
+                }
+            }
         }
         let f0 = win.frames[0];
         // The joint and the child at the window's start, moved by the parent's displacement.

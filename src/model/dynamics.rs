@@ -353,6 +353,7 @@ mod tests {
         let n = (2.0 / h) as usize;
         WindowEvidence {
             frames: (0..13).collect(),
+            rest: vec![],
             frame_substep: (0..13).map(|k| ((k as f64 * 5.0 / 30.0) / h).round() as usize).collect(),
             pushed: Some(0),
             h,

@@ -69,6 +69,14 @@ pub struct Grid {
     pub min_dt_s: f64,
     pub min_frames: usize,
     pub max_frames: usize,
+    /// Dynamic mode: stamps up to this long after a window \[s\] (and before the next window)
+    /// join the grid, at the window's spacing, as *rest frames*: observed like any frame, but
+    /// outside the physics window, their coordinates tied to its last one
+    /// ([`WindowEvidence::rest`]). Why: a part's pose at rest after a push shows its joint's
+    /// displacement over many frames at once, without asking the physics to predict how the
+    /// joint settles (extending the window itself, `windows.margin_after_s`, did that and biased
+    /// damping and friction).
+    pub rest_after_s: f64,
     /// Integration step of the physics in dynamic mode \[s\].
     pub step_s: f64,
     /// Surface points closer than this to another part count as touching it \[m\]; each model
@@ -83,6 +91,10 @@ pub struct Grid {
 pub struct WindowEvidence {
     /// Grid frames of the window, in time order.
     pub frames: Vec<usize>,
+    /// Rest frames after the window ([`Grid::rest_after_s`]), in time order: no force acts, and
+    /// the joint's coordinate there deviates from the window's last by the physics' deviation
+    /// scale.
+    pub rest: Vec<usize>,
     /// Integration step at the stamp of each of `frames` (0 for the first).
     pub frame_substep: Vec<usize>,
     /// The pushed part (index into [`Evidence::parts`]), if known.
@@ -143,24 +155,24 @@ impl Evidence {
         grid: &Grid,
     ) -> Evidence {
         let (min_dt, min_frames, max_frames) = (grid.min_dt_s, grid.min_frames, grid.max_frames);
+        // The window of a stamp, rest frames after it included (dynamic mode only).
+        let rest_after = if wrenches.is_empty() { 0.0 } else { grid.rest_after_s.max(0.0) };
+        let physics_window = |t: f64| windows.iter().position(|w| w.contains(t));
+        let window_of = |t: f64| physics_window(t).or_else(|| windows.iter().position(|w| t > w.end && t <= w.end + rest_after));
         let mut stamps: BTreeMap<u64, usize> = BTreeMap::new();
         let key = |t: f64| (t * 1e9).round() as u64;
         for obs in tracks.values() {
             for o in obs {
-                if windows.iter().any(|w| w.contains(o.stamp)) {
+                if window_of(o.stamp).is_some() {
                     stamps.insert(key(o.stamp), 0);
                 }
             }
         }
         let mut all: Vec<u64> = Vec::new();
         for &k in stamps.keys() {
-            let new_window = all.last().is_some_and(|&l| {
-                windows.iter().position(|w| w.contains(l as f64 * 1e-9)) != windows.iter().position(|w| w.contains(k as f64 * 1e-9))
-            });
-            let dt = windows
-                .iter()
-                .find(|w| w.contains(k as f64 * 1e-9))
-                .map(|w| min_dt.min((w.end - w.start) / min_frames.max(1) as f64))
+            let new_window = all.last().is_some_and(|&l| window_of(l as f64 * 1e-9) != window_of(k as f64 * 1e-9));
+            let dt = window_of(k as f64 * 1e-9)
+                .map(|w| min_dt.min((windows[w].end - windows[w].start) / min_frames.max(1) as f64))
                 .unwrap_or(min_dt);
             if all.last().is_none_or(|&l| new_window || (k - l) as f64 * 1e-9 >= dt - 1e-6) {
                 all.push(k);
@@ -174,7 +186,6 @@ impl Evidence {
         };
         let index: BTreeMap<u64, usize> = keep.iter().enumerate().map(|(i, k)| (*k, i)).collect();
         let times: Vec<f64> = keep.iter().map(|k| *k as f64 * 1e-9).collect();
-        let window_of = |t: f64| windows.iter().position(|w| w.contains(t));
         let window_start = (0..times.len())
             .map(|i| i == 0 || window_of(times[i]) != window_of(times[i - 1]))
             .collect();
@@ -230,9 +241,11 @@ impl Evidence {
                 .iter()
                 .enumerate()
                 .filter_map(|(w, win)| {
-                    let frames: Vec<usize> = (0..times.len()).filter(|&i| window_of(times[i]) == Some(w)).collect();
+                    let frames: Vec<usize> = (0..times.len()).filter(|&i| physics_window(times[i]) == Some(w)).collect();
+                    let rest: Vec<usize> =
+                        (0..times.len()).filter(|&i| physics_window(times[i]).is_none() && window_of(times[i]) == Some(w)).collect();
                     let pushed = win.pushed_part.and_then(|l| labels.iter().position(|&x| x == l));
-                    window_evidence(&times, frames, pushed, wrenches, grid.step_s)
+                    window_evidence(&times, frames, pushed, wrenches, grid.step_s).map(|we| WindowEvidence { rest, ..we })
                 })
                 .collect()
         };
@@ -280,7 +293,7 @@ fn window_evidence(times: &[f64], frames: Vec<usize>, pushed: Option<usize>, wre
         torque.push(tq);
         point.push(p);
     }
-    Some(WindowEvidence { frames, frame_substep, pushed, h, force, torque, point })
+    Some(WindowEvidence { frames, rest: Vec::new(), frame_substep, pushed, h, force, torque, point })
 }
 
 /// Log-density of a `dim`-variate Student-t with `nu` degrees of freedom (Gaussian when `nu` is

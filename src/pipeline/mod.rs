@@ -269,6 +269,7 @@ pub fn grid(cfg: &Config) -> Grid {
         min_dt_s: cfg.inference.min_dt_s,
         min_frames: cfg.inference.min_frames,
         max_frames: cfg.inference.max_frames,
+        rest_after_s: cfg.inference.rest_after_s,
         step_s: cfg.model.dynamics.step_s,
         contact_range_m: cfg.perception.contact_range_m,
         voxel_m: cfg.perception.voxel_m,
