@@ -113,9 +113,9 @@ pub struct SviConfig {
     pub min_frames: usize,
     pub max_frames: usize,
     /// Dynamic mode: grid frames up to this long after a window \[s\] (and before the next) join
-    /// the evidence as the joint at rest, outside the physics window (see [`Grid::rest_after_s`]);
-    /// 0, the default, for none (README, "Known limits": 0.5 fixes `adroit_door`'s latch but
-    /// costs IdE on recordings not shipped).
+    /// the evidence as the joint at rest, outside the physics window
+    /// ([`crate::model::likelihood::Grid::rest_after_s`]); 0, the default, for none (README,
+    /// "Known limits": 0.5 fixes `adroit_door`'s latch but costs IdE on recordings not shipped).
     pub rest_after_s: f64,
     /// Initial guide sds: standardised kinematic parameters, coordinates \[m\], standardised
     /// kinodynamic parameters.
@@ -573,23 +573,13 @@ fn dynamics_pass(
         if w > 0 {
             let (a, b) = (ev.windows[w - 1].frames[ev.windows[w - 1].frames.len() - 1], win.frames[0]);
             let sd = dynamics::decode::<f64>(s.params.joint, xi, &ev.effects[i], dyncfg).deviation;
-            let d = s.q[b] - s.q[a];
-            l += -(d * d) / (2.0 * sd * sd) - (sd * (2.0 * std::f64::consts::PI).sqrt()).ln();
-            gq[b] -= d / (sd * sd);
-            gq[a] += d / (sd * sd);
-            gx[3] += (d * d / (sd * sd) - 1.0) * dyncfg.deviation_log_sd;
+            l += rest_term(&s.q, a, b, sd, dyncfg.deviation_log_sd, &mut gq, &mut gx[3]);
         }
         // After the window the joint rests where the physics window left it (rest frames).
-        if let Some(&a) = win.frames.last() {
-            if !win.rest.is_empty() {
-                let sd = dynamics::decode::<f64>(s.params.joint, xi, &ev.effects[i], dyncfg).deviation;
-                for &b in &win.rest {
-                    let d = s.q[b] - s.q[a];
-                    l += -(d * d) / (2.0 * sd * sd) - (sd * (2.0 * std::f64::consts::PI).sqrt()).ln();
-                    gq[b] -= d / (sd * sd);
-                    gq[a] += d / (sd * sd);
-                    gx[3] += (d * d / (sd * sd) - 1.0) * dyncfg.deviation_log_sd;
-                }
+        if let (Some(&a), false) = (win.frames.last(), win.rest.is_empty()) {
+            let sd = dynamics::decode::<f64>(s.params.joint, xi, &ev.effects[i], dyncfg).deviation;
+            for &b in &win.rest {
+                l += rest_term(&s.q, a, b, sd, dyncfg.deviation_log_sd, &mut gq, &mut gx[3]);
             }
         }
         let f0 = win.frames[0];
@@ -633,6 +623,17 @@ fn dynamics_pass(
         }
     }
     (l, gx, gq)
+}
+
+/// `log N(q_b; q_a, sd^2)`, a joint resting at `q_a` while no force acts (between windows, and
+/// at rest frames), with its gradients added to `gq` (coordinates) and `g_dev` (the deviation's
+/// standardised parameter, whose log-normal has log-sd `deviation_log_sd`).
+fn rest_term(q: &[f64], a: usize, b: usize, sd: f64, deviation_log_sd: f64, gq: &mut [f64], g_dev: &mut f64) -> f64 {
+    let d = q[b] - q[a];
+    gq[b] -= d / (sd * sd);
+    gq[a] += d / (sd * sd);
+    *g_dev += (d * d / (sd * sd) - 1.0) * deviation_log_sd;
+    -(d * d) / (2.0 * sd * sd) - (sd * (2.0 * std::f64::consts::PI).sqrt()).ln()
 }
 
 /// The result of a fit: the posterior summary and the guide, to warm-start the next fit.
