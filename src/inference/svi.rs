@@ -566,20 +566,20 @@ fn dynamics_pass(
     if let Some(sc) = scores.as_deref_mut() {
         sc.clear();
     }
+    // The deviation scale, also that of a joint at rest between windows and at rest frames.
+    let rest_sd = dynamics::decode::<f64>(s.params.joint, xi, &ev.effects[i], dyncfg).deviation;
     for (w, win) in ev.windows.iter().enumerate() {
         let gx_before = scores.is_some().then(|| gx.clone());
         // Between windows no force acts: the joint rests where the last window left it, up to
         // the same deviation scale.
         if w > 0 {
             let (a, b) = (ev.windows[w - 1].frames[ev.windows[w - 1].frames.len() - 1], win.frames[0]);
-            let sd = dynamics::decode::<f64>(s.params.joint, xi, &ev.effects[i], dyncfg).deviation;
-            l += rest_term(&s.q, a, b, sd, dyncfg.deviation_log_sd, &mut gq, &mut gx[3]);
+            l += rest_term(&s.q, a, b, rest_sd, dyncfg.deviation_log_sd, &mut gq, &mut gx[3]);
         }
         // After the window the joint rests where the physics window left it (rest frames).
-        if let (Some(&a), false) = (win.frames.last(), win.rest.is_empty()) {
-            let sd = dynamics::decode::<f64>(s.params.joint, xi, &ev.effects[i], dyncfg).deviation;
+        if let Some(&a) = win.frames.last() {
             for &b in &win.rest {
-                l += rest_term(&s.q, a, b, sd, dyncfg.deviation_log_sd, &mut gq, &mut gx[3]);
+                l += rest_term(&s.q, a, b, rest_sd, dyncfg.deviation_log_sd, &mut gq, &mut gx[3]);
             }
         }
         let f0 = win.frames[0];

@@ -245,7 +245,7 @@ impl Evidence {
                     let rest: Vec<usize> =
                         (0..times.len()).filter(|&i| physics_window(times[i]).is_none() && window_of(times[i]) == Some(w)).collect();
                     let pushed = win.pushed_part.and_then(|l| labels.iter().position(|&x| x == l));
-                    window_evidence(&times, frames, pushed, wrenches, grid.step_s).map(|we| WindowEvidence { rest, ..we })
+                    window_evidence(&times, frames, rest, pushed, wrenches, grid.step_s)
                 })
                 .collect()
         };
@@ -264,7 +264,7 @@ impl Evidence {
 }
 
 /// A window's wrench on the integration steps from its first grid frame to its last.
-fn window_evidence(times: &[f64], frames: Vec<usize>, pushed: Option<usize>, wrenches: &[WrenchSample], h: f64) -> Option<WindowEvidence> {
+fn window_evidence(times: &[f64], frames: Vec<usize>, rest: Vec<usize>, pushed: Option<usize>, wrenches: &[WrenchSample], h: f64) -> Option<WindowEvidence> {
     let (&first, &last) = (frames.first()?, frames.last()?);
     if frames.len() < 2 || h <= 0.0 {
         return None;
@@ -293,7 +293,7 @@ fn window_evidence(times: &[f64], frames: Vec<usize>, pushed: Option<usize>, wre
         torque.push(tq);
         point.push(p);
     }
-    Some(WindowEvidence { frames, rest: Vec::new(), frame_substep, pushed, h, force, torque, point })
+    Some(WindowEvidence { frames, rest, frame_substep, pushed, h, force, torque, point })
 }
 
 /// Log-density of a `dim`-variate Student-t with `nu` degrees of freedom (Gaussian when `nu` is
