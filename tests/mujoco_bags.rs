@@ -193,3 +193,94 @@ fn rest_frames_follow_each_window_outside_the_physics() {
     let latch = m.per_part.iter().find(|p| p.label == 3).and_then(|p| p.axis_angle_deg).expect("latch axis");
     assert!(latch < 3.5 && m.axis_angle_deg.is_some_and(|a| a < 2.0), "latch {latch:.2} deg, bag {:?}", m.axis_angle_deg);
 }
+
+/// The physics against MuJoCo: at the recorder's true damping, friction and joint axis, the
+/// model's simulation of each joint ([`bom::criticism::residuals::JointSeries::predict`]: from the
+/// window's first frame at rest, under the measured wrench, with the replay's MAP tree) follows
+/// every push the recording holds to within 2 cm of centre-of-mass path, and better than with
+/// damping and friction both 1.5 times larger or smaller — for every joint on a part that stays
+/// put, on every bag whose physics the base model covers (no effects, or only more friction). A units slip (radians against metres of
+/// path), a wrong lever arm or a friction law that does not stop a joint would break this; the
+/// criticism's held-out residuals stand on it. The mass is the fitted one: the bag's is the
+/// MuJoCo body's, whose inertia (with the joint's armature) the observed hull scaled by a mass does
+/// not reproduce (`adroit_door`'s door: 83 mm RMSE with the bag's mass, 6 mm with the fitted one).
+/// The true axis, not the fitted one, because the fitted hinge of `microwave` passes 5 cm from the
+/// true hinge point (the lines come closest far below the object, so `axis_offset_m` reads 5 mm):
+/// the push's lever arm is then 10% short, the pushes are 22 mm off at the true damping and
+/// friction, and the fit makes both about 10% low to match (README, known limits).
+#[test]
+fn the_physics_at_the_true_parameters_follows_every_push() {
+    use bom::criticism::residuals::{part_transforms, JointSeries};
+    use bom::model::dynamics;
+    use bom::model::effects::EffectSet;
+    use nalgebra::Vector3;
+    use std::collections::BTreeMap;
+    let cfg = Config::new();
+    let dyncfg = &cfg.model.dynamics;
+    let mut checked = 0;
+    for bag in bags() {
+        let name = bag.file_stem().unwrap().to_string_lossy().to_string();
+        let mut diag = Diagnostics::default();
+        let read = input::read_bag(&bag, &mut diag).unwrap();
+        let truth = read.ground_truth.clone().unwrap();
+        if name.contains("undeclared") || !truth.effects.iter().all(|e| e["kind"] == "extra_friction") {
+            continue;
+        }
+        let rec = input::decode_recording(&[read], &cfg.topics, &cfg.fixed_frame, &mut diag);
+        let run = bom::pipeline::replay(std::slice::from_ref(&bag), &cfg).expect("replay");
+        let post = run.posterior.as_ref().expect("posterior");
+        let ev = bom::model::likelihood::Evidence::new(&run.tracks, &run.geometry, &run.windows, &rec.wrenches, &BTreeMap::new(), &bom::pipeline::grid(&cfg));
+        let transforms = part_transforms(post, ev.len());
+        for i in 0..ev.parts.len() {
+            let label = ev.parts[i].label;
+            let gt = truth.parts.iter().find(|p| p.label == label).unwrap();
+            let (Some(d), Some(f), Some(td)) = (gt.damping, gt.friction, gt.axis_direction) else { continue };
+            // One joint is simulated with its parent held where the window starts: a joint on a
+            // moving part (a latch on a door, which its pushes swing) is not one joint's physics.
+            let mut up = gt.parent;
+            let mut on_moving = false;
+            while let Some(p) = truth.parts.iter().find(|p| p.label == up) {
+                on_moving |= p.joint != "rigid";
+                up = p.parent;
+            }
+            if on_moving {
+                continue;
+            }
+            let Some(mut series) = JointSeries::new(&ev, post, &transforms, i, dyncfg) else { continue };
+            let Some(kd) = post.joints[i].kinodynamics else { continue };
+            // The true axis (in the reference configuration), moved by the parent's displacement at
+            // each window's start as the fitted one is.
+            let td = Vector3::from(td);
+            let td = if td.dot(&series.params.direction) < 0.0 { -td } else { td };
+            for jw in series.windows.iter_mut() {
+                let pre = series.pre[jw.win.frames[0]];
+                jw.joint.direction = pre.r * td;
+                if let Some(tp) = gt.axis_point {
+                    jw.joint.point = pre.apply(&Vector3::from(tp));
+                }
+            }
+            // Standardised parameters (paper §3.2: xi ~ N(0, 1) mapped to the physical scale).
+            let scales = dynamics::prior_scales(series.params.joint, dyncfg);
+            let xi = |scale: f64| -> Vec<f64> {
+                let v = [d * scale, f * scale, kd.mass.median];
+                (0..3).map(|k| (v[k] / scales[k].0).ln() / scales[k].1).chain([0.0]).collect()
+            };
+            let rmse = |xi: &[f64]| {
+                let (mut sq, mut n) = (0.0, 0);
+                for (w, jw) in series.windows.iter().enumerate().filter(|(_, jw)| jw.pushed) {
+                    let pred = series.predict(w, xi, EffectSet::default(), dyncfg);
+                    for (k, &t) in jw.win.frames.iter().enumerate().skip(1) {
+                        sq += (series.com_at(t, series.q[t]) - series.com_at(t, pred[k])).norm_squared();
+                        n += 1;
+                    }
+                }
+                (n > 0).then(|| (sq / n as f64).sqrt())
+            };
+            let (Some(at_truth), Some(up), Some(down)) = (rmse(&xi(1.0)), rmse(&xi(1.5)), rmse(&xi(1.0 / 1.5))) else { continue };
+            println!("{name:24} part {label}: pushes within {at_truth:.4} m RMSE at the true damping and friction ({up:.4} m at 1.5 times, {down:.4} m at 1/1.5)");
+            assert!(at_truth < 0.02 && at_truth < up && at_truth < down, "{name} part {label}: {at_truth:.4} m at the truth, {up:.4} / {down:.4} m at 1.5 / 1/1.5 times");
+            checked += 1;
+        }
+    }
+    assert!(checked >= 8, "{checked} joints checked");
+}
