@@ -199,9 +199,9 @@ fn rest_frames_follow_each_window_outside_the_physics() {
 /// window's first frame at rest, under the measured wrench, with the replay's MAP tree) follows
 /// every push the recording holds to within 2 cm of centre-of-mass path, and better than with
 /// damping and friction both 1.5 times larger or smaller — for every joint on a part that stays
-/// put, on every bag whose physics the base model covers (no effects, or only more friction). A units slip (radians against metres of
-/// path), a wrong lever arm or a friction law that does not stop a joint would break this; the
-/// criticism's held-out residuals stand on it. The mass is the fitted one: the bag's is the
+/// put, on every bag whose physics the base model covers (no effects, or only more friction). A
+/// units slip (radians against metres of path), a wrong lever arm or a friction law that does not
+/// stop a joint would break this; the criticism's held-out residuals stand on it. The mass is the fitted one: the bag's is the
 /// MuJoCo body's, whose inertia (with the joint's armature) the observed hull scaled by a mass does
 /// not reproduce (`adroit_door`'s door: 83 mm RMSE with the bag's mass, 6 mm with the fitted one).
 /// The true axis, not the fitted one, because the fitted hinge of `microwave` passes 5 cm from the
@@ -237,11 +237,12 @@ fn the_physics_at_the_true_parameters_follows_every_push() {
             let (Some(d), Some(f), Some(td)) = (gt.damping, gt.friction, gt.axis_direction) else { continue };
             // One joint is simulated with its parent held where the window starts: a joint on a
             // moving part (a latch on a door, which its pushes swing) is not one joint's physics.
-            let mut up = gt.parent;
+            let mut node = gt.parent;
             let mut on_moving = false;
-            while let Some(p) = truth.parts.iter().find(|p| p.label == up) {
+            for _ in 0..truth.parts.len() {
+                let Some(p) = truth.parts.iter().find(|p| p.label == node) else { break };
                 on_moving |= p.joint != "rigid";
-                up = p.parent;
+                node = p.parent;
             }
             if on_moving {
                 continue;
