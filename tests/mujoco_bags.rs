@@ -205,7 +205,7 @@ fn rest_frames_follow_each_window_outside_the_physics() {
 /// MuJoCo body's, whose inertia (with the joint's armature) the observed hull scaled by a mass does
 /// not reproduce (`adroit_door`'s door: 83 mm RMSE with the bag's mass, 6 mm with the fitted one).
 /// The true axis, not the fitted one, because the fitted hinge of `microwave` passes 5 cm from the
-/// true hinge point (the lines come closest far below the object, so `axis_offset_m` reads 5 mm):
+/// true hinge point (the lines come closest far from the object, so `axis_offset_m` reads 5 mm):
 /// the push's lever arm is then 10% short, the pushes are 22 mm off at the true damping and
 /// friction, and the fit makes both about 10% low to match (README, known limits).
 #[test]
