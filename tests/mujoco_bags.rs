@@ -128,13 +128,10 @@ fn undeclared_effect(name: &str) -> Option<&'static str> {
 
 /// Model criticism on one bag's replay: with an undeclared effect, that effect and no other is
 /// added (on one part or more: the recorder's spring acts on both doors of the hinge cabinet) and
-/// cuts the held-out error (to a third for the stop and gravity, whose residuals are large; the
-/// hinge springs of 0.8 N m/rad move doors held by 2 N m of friction little, and their residual is
-/// small to begin with: measured 0.78 of it, 0.84 once the joint types' step targets got their
-/// floor, 0.72 once the reported kinodynamics ran to their mode, 0.77 (the right door; the left
-/// one's unexplained) with friction regularised by its relaxation time, 0.71 with the reported
-/// posterior averaged over the last iterations, 0.58 and 0.42 (both doors) with Student-t
-/// deviations from the physics, so at most 0.75 here); without one, no effect is added.
+/// cuts the held-out error to a third; without one, no effect is added. (The hinge springs got to
+/// 0.58 and 0.38 of the base's error only, while their bag pushed each door twice, both times
+/// further open: a refit to the one push left moves along a ridge of stiffness, rest and
+/// friction. The bag now pushes each door three times, the last one back towards closed.)
 fn criticism_finds_the_undeclared_effect(name: &str, run: &bom::pipeline::Run) {
     let added: Vec<_> = run.findings.iter().filter(|f| f.effect.is_some()).collect();
     for f in &run.findings {
@@ -144,9 +141,8 @@ fn criticism_finds_the_undeclared_effect(name: &str, run: &bom::pipeline::Run) {
         Some(effect) => {
             let names: Vec<_> = added.iter().map(|f| f.name()).collect();
             assert!(!added.is_empty() && names.iter().all(|n| *n == effect), "{name}: effects added: {names:?}");
-            let most = if effect == "spring" { 0.75 } else { 1.0 / 3.0 };
             for f in &added {
-                assert!(f.rmse_after_m <= most * f.rmse_before_m, "{name}: part {}: held-out RMSE {:.4} -> {:.4} m", f.part, f.rmse_before_m, f.rmse_after_m);
+                assert!(f.rmse_after_m <= f.rmse_before_m / 3.0, "{name}: part {}: held-out RMSE {:.4} -> {:.4} m", f.part, f.rmse_before_m, f.rmse_after_m);
             }
         }
         None => assert!(added.is_empty(), "{name}: false alarm: {:?}", added.iter().map(|f| f.name()).collect::<Vec<_>>()),

@@ -17,6 +17,7 @@ $R --object slide_microwave --seed 6 --out bags/mujoco/slide_microwave.mcap
 $R --object microwave       --seed 7 --effect spring=1.5 --out bags/mujoco/microwave_spring.mcap
 $R --object slidecabinet    --seed 8 --effect friction=2.0 --out bags/mujoco/slidecabinet_friction.mcap
 # undeclared effects (model criticism must find them)
-$R --object hingecabinet    --seed 9 --effect spring=0.8 --undeclared --out bags/mujoco/hingecabinet_spring_undeclared.mcap
+# Six interactions, three per door: criticism refits each door on all but one of its pushes.
+$PY bags/generate/record.py --interactions 6 --object hingecabinet --seed 9 --effect spring=0.8 --undeclared --out bags/mujoco/hingecabinet_spring_undeclared.mcap
 $R --object drawer          --seed 10 --effect limit=0.75 --undeclared --out bags/mujoco/drawer_limit_undeclared.mcap
 $R --object slidecabinet    --seed 11 --effect gravity=0.35 --undeclared --out bags/mujoco/slidecabinet_gravity_undeclared.mcap
