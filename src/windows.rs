@@ -42,7 +42,7 @@ impl Default for WindowConfig {
             speed_span_s: 0.2,
             hold_s: 0.3,
             margin_before_s: 0.3,
-            margin_after_s: 0.5,
+            margin_after_s: 0.7,
             merge_gap_s: 0.2,
             min_duration_s: 0.2,
         }
@@ -184,8 +184,10 @@ mod tests {
             .collect();
         let mut tracks = PartTracks::new();
         tracks.insert(1, track);
-        let w = motion_windows(&tracks, &WindowConfig::default());
+        let cfg = WindowConfig::default();
+        let w = motion_windows(&tracks, &cfg);
         assert_eq!(w.len(), 1, "{w:?}");
-        assert!((w[0].start - 1.6).abs() < 0.15 && (w[0].end - 4.5).abs() < 0.2, "{w:?}");
+        // Motion from 2 s to 4 s; the margins around it.
+        assert!((w[0].start - (2.0 - cfg.margin_before_s)).abs() < 0.15 && (w[0].end - (4.0 + cfg.margin_after_s)).abs() < 0.2, "{w:?}");
     }
 }

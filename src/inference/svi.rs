@@ -114,8 +114,9 @@ pub struct SviConfig {
     pub max_frames: usize,
     /// Dynamic mode: grid frames up to this long after a window \[s\] (and before the next) join
     /// the evidence as the joint at rest, outside the physics window
-    /// ([`crate::model::likelihood::Grid::rest_after_s`]); 0, the default, for none (README,
-    /// "Known limits": 0.5 fixes `adroit_door`'s latch but costs IdE on recordings not shipped).
+    /// ([`crate::model::likelihood::Grid::rest_after_s`]); 0 for none. Default 0.5, with windows
+    /// closing 0.7 s after the force ([`crate::windows::WindowConfig::margin_after_s`]) so that a
+    /// coasting door has stopped before its rest frames begin (README, "Known limits").
     pub rest_after_s: f64,
     /// Initial guide sds: standardised kinematic parameters, coordinates \[m\], standardised
     /// kinodynamic parameters.
@@ -148,7 +149,7 @@ impl Default for SviConfig {
             tau: 0.5,
             delta: 0.5,
             min_dt_s: 0.5,
-            rest_after_s: 0.0,
+            rest_after_s: 0.5,
             min_frames: 20,
             max_frames: 200,
             init_global_sd: 0.05,

@@ -461,7 +461,8 @@ mod tests {
 
     #[test]
     fn a_long_quiet_stream_keeps_memory_bounded_and_a_push_still_closes_a_window() {
-        let mut on = Online::new(&Config::new());
+        let cfg = Config::new();
+        let mut on = Online::new(&cfg);
         let push = |t: f64| if (100.0..101.0).contains(&t) { 5.0 } else { 0.0 };
         for k in 0..(110 * 1000) {
             let t = k as f64 * 1e-3;
@@ -478,7 +479,8 @@ mod tests {
         }
         assert_eq!(on.windows().len(), 1, "{:?}", on.windows());
         let w = &on.windows()[0];
-        assert!((w.start - (100.0 - 0.3)).abs() < 0.01 && (w.end - (101.0 + 0.5)).abs() < 0.01, "{w:?}");
+        let wc = &cfg.windows;
+        assert!((w.start - (100.0 - wc.margin_before_s)).abs() < 0.01 && (w.end - (101.0 + wc.margin_after_s)).abs() < 0.01, "{w:?}");
         assert_eq!(w.pushed_part, Some(1));
         assert_eq!(on.diag.total(), 0);
     }
