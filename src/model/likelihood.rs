@@ -74,8 +74,9 @@ pub struct Grid {
     /// outside the physics window, their coordinates tied to its last one
     /// ([`WindowEvidence::rest`]). Why: a part's pose at rest after a push shows its joint's
     /// displacement over many frames at once, without asking the physics to predict how the
-    /// joint settles (extending the window itself, `windows.margin_after_s`, did that and biased
-    /// damping and friction).
+    /// joint settles (extending the window further, `windows.margin_after_s` 1.0 s, did that and
+    /// biased damping and friction; the default 0.7 s covers a heavy door's coast, so that rest
+    /// frames begin once the part has stopped).
     pub rest_after_s: f64,
     /// Integration step of the physics in dynamic mode \[s\].
     pub step_s: f64,
