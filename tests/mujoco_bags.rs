@@ -152,12 +152,12 @@ fn criticism_finds_the_undeclared_effect(name: &str, run: &bom::pipeline::Run) {
     }
 }
 
-/// Rest frames (`inference.rest_after_s`, 0.5 s by default since stop 22): in dynamic mode grid frames up to that
-/// long after each window join the evidence, outside the physics window and without starting a
-/// new one; the physics windows keep exactly the frames and wrench they have without them, and
-/// kinematic mode (no wrench) gets none. With them `adroit_door`'s latch axis comes out within
-/// 3.5 degrees of the truth and the bag's median axis angle within 2 (without: 4.5-4.9 and
-/// 2.3-2.5, with windows 0.5 s past the force).
+/// Rest frames (`inference.rest_after_s`, 0.5 s by default since stop 22): in dynamic mode grid
+/// frames up to that long after each window join the evidence, outside the physics window and
+/// without starting a new one; the physics windows keep exactly the frames and wrench they have
+/// without them, and kinematic mode (no wrench) gets none. With them `adroit_door`'s latch axis
+/// comes out within 3.5 degrees of the truth and the bag's median axis angle within 2 (without:
+/// 4.5-4.9 and 2.3-2.5, with windows 0.5 s past the force).
 #[test]
 fn rest_frames_follow_each_window_outside_the_physics() {
     use bom::model::likelihood::{Evidence, Grid};
@@ -193,20 +193,21 @@ fn rest_frames_follow_each_window_outside_the_physics() {
     assert!(latch < 3.5 && m.axis_angle_deg.is_some_and(|a| a < 2.0), "latch {latch:.2} deg, bag {:?}", m.axis_angle_deg);
 }
 
-/// The physics against MuJoCo: at the recorder's true damping, friction and joint axis, the
-/// model's simulation of each joint ([`bom::criticism::residuals::JointSeries::predict`]: from the
-/// window's first frame at rest, under the measured wrench, with the replay's MAP tree) follows
-/// every push the recording holds to within 2 cm of centre-of-mass path, and better than with
-/// damping and friction both 1.5 times larger or smaller — for every joint on a part that stays
-/// put, on every bag whose physics the base model covers (no effects, or only more friction). A
-/// units slip (radians against metres of path), a wrong lever arm or a friction law that does not
-/// stop a joint would break this; the criticism's held-out residuals stand on it. The mass is the fitted one: the bag's is the
-/// MuJoCo body's, whose inertia (with the joint's armature) the observed hull scaled by a mass does
-/// not reproduce (`adroit_door`'s door: 83 mm RMSE with the bag's mass, 6 mm with the fitted one).
-/// The true axis, not the fitted one, because the fitted hinge of `microwave` passes 5 cm from the
-/// true hinge point (the lines come closest far from the object, so `axis_offset_m` reads 5 mm):
-/// the push's lever arm is then 10% short, the pushes are 22 mm off at the true damping and
-/// friction, and the fit makes both about 10% low to match (README, known limits).
+/// The physics against MuJoCo: at the recorder's true damping, friction and joint axis, the model's
+/// simulation of each joint ([`bom::criticism::residuals::JointSeries::predict`]: from the window's
+/// first frame at rest, under the measured wrench, with the replay's MAP tree) follows every push
+/// the recording holds to within 2 cm of centre-of-mass path, and better than with damping and
+/// friction both 1.5 times larger or smaller — for every joint on a part that stays put, on every
+/// bag whose physics the base model covers (no effects, or only more friction). A units slip
+/// (radians against metres of path), a wrong lever arm or a friction law that does not stop a joint
+/// would break this; the criticism's held-out residuals stand on it. The mass is the fitted one:
+/// the bag's is the MuJoCo body's, whose inertia (with the joint's armature) the observed hull
+/// scaled by a mass does not reproduce (`adroit_door`'s door: 83 mm RMSE with the bag's mass, 6 mm
+/// with the fitted one). The true axis, not the fitted one, because the fitted hinge of `microwave`
+/// passes 5 cm from the true hinge point (the lines come closest far from the object, so
+/// `axis_offset_m` reads 5 mm): the push's lever arm is then 10% short, the pushes are 22 mm off at
+/// the true damping and friction, and the fit makes both about 10% low to match (README, known
+/// limits).
 #[test]
 fn the_physics_at_the_true_parameters_follows_every_push() {
     use bom::criticism::residuals::{part_transforms, JointSeries};
