@@ -46,16 +46,34 @@ enum Command {
         #[arg(long)]
         plot: Option<PathBuf>,
     },
-    /// Replay, then the metrics of contract section 6 against the bags' bom_ground_truth.
+    /// Replay, then the metrics of contract section 6 against the bags' bom_ground_truth; with
+    /// --corpus, over every object of a corpus, with the calibration of the joint-type posterior.
     Eval {
-        #[command(flatten)]
-        input: ReplayInput,
+        /// Bags of one object (several bags = several interactions with it).
+        #[arg(required_unless_present = "corpus", conflicts_with = "corpus")]
+        bags: Vec<PathBuf>,
+        /// Settings (YAML, or a ROS 2 parameters file with a `bom: ros__parameters:` section).
+        #[arg(long)]
+        config: Option<PathBuf>,
         /// Write the metrics (JSON) here.
         #[arg(long)]
         json: Option<PathBuf>,
         /// Add the paper's Disconnected and Clique baselines.
         #[arg(long)]
         baselines: bool,
+        /// A corpus: a manifest (bags/generate/corpus.py), a folder holding manifest.json, or a
+        /// folder of objects, each a folder of bags.
+        #[arg(long)]
+        corpus: Option<PathBuf>,
+        /// Corpus objects of this split only (tune, validation; all: every object).
+        #[arg(long, default_value = "all", requires = "corpus")]
+        split: String,
+        /// Which recordings of each corpus object (both: each, and their agreement).
+        #[arg(long, value_enum, default_value = "continuous", requires = "corpus")]
+        layout: LayoutArg,
+        /// Corpus objects replayed at a time.
+        #[arg(long, default_value_t = 1, requires = "corpus")]
+        jobs: usize,
     },
     /// The live ROS 2 node (contract sections 1-2). Honours ROS_DOMAIN_ID and
     /// ROS_AUTOMATIC_DISCOVERY_RANGE; stops on SIGINT/SIGTERM after publishing the last model.
@@ -86,6 +104,13 @@ enum Command {
     },
 }
 
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum LayoutArg {
+    Continuous,
+    Episodes,
+    Both,
+}
+
 fn parse_joint(s: &str) -> Result<JointType, String> {
     JointType::parse(s).ok_or_else(|| format!("unknown joint type '{s}' (rigid, fixed, prismatic, revolute)"))
 }
@@ -93,15 +118,54 @@ fn parse_joint(s: &str) -> Result<JointType, String> {
 const EXIT_ARGS: u8 = 2;
 const EXIT_INPUT: u8 = 3;
 
-/// Load the settings and run the pipeline; a bad configuration exits 2, unusable bags 3.
-fn replay(input: &ReplayInput) -> Result<(pipeline::Run, Config), ExitCode> {
-    let cfg = match &input.config {
+/// Load the settings (`None`: the defaults); a bad configuration exits 2.
+fn load_config(path: Option<&PathBuf>) -> Result<Config, ExitCode> {
+    match path {
         Some(path) => Config::load(path).map_err(|e| {
             eprintln!("error: config {e}");
             ExitCode::from(EXIT_ARGS)
-        })?,
-        None => Config::new(),
+        }),
+        None => Ok(Config::new()),
+    }
+}
+
+/// `bom eval --corpus`: the aggregate table on stdout, the report as JSON.
+fn eval_corpus(corpus: &std::path::Path, split: &str, layout: LayoutArg, jobs: usize, config: Option<&PathBuf>, json: Option<&PathBuf>) -> ExitCode {
+    use bom::eval::corpus::{self, Layout};
+    let cfg = match load_config(config) {
+        Ok(c) => c,
+        Err(code) => return code,
     };
+    let layouts = match layout {
+        LayoutArg::Continuous => vec![Layout::Continuous],
+        LayoutArg::Episodes => vec![Layout::Episodes],
+        LayoutArg::Both => vec![Layout::Continuous, Layout::Episodes],
+    };
+    let report = match corpus::run(corpus, split, &layouts, &cfg, jobs) {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return ExitCode::from(EXIT_INPUT);
+        }
+    };
+    print!("{}", corpus::render(&report));
+    if let Some(path) = json {
+        let text = serde_json::to_string_pretty(&report).expect("report serialises");
+        if let Err(e) = std::fs::write(path, text + "\n") {
+            eprintln!("error: {}: {e}", path.display());
+            return ExitCode::from(EXIT_ARGS);
+        }
+    }
+    if report.scored == 0 {
+        eprintln!("error: {}: no object could be scored", corpus.display());
+        return ExitCode::from(EXIT_INPUT);
+    }
+    ExitCode::SUCCESS
+}
+
+/// Load the settings and run the pipeline; a bad configuration exits 2, unusable bags 3.
+fn replay(input: &ReplayInput) -> Result<(pipeline::Run, Config), ExitCode> {
+    let cfg = load_config(input.config.as_ref())?;
     let run = pipeline::replay(&input.bags, &cfg).map_err(|e| {
         eprintln!("error: {e}");
         ExitCode::from(EXIT_INPUT)
@@ -186,7 +250,11 @@ fn main() -> ExitCode {
         .init();
     let cli = Cli::parse();
     match cli.command {
-        Command::Eval { input, json, baselines } => {
+        Command::Eval { bags, config, json, baselines, corpus, split, layout, jobs } => {
+            if let Some(corpus) = corpus {
+                return eval_corpus(&corpus, &split, layout, jobs, config.as_ref(), json.as_ref());
+            }
+            let input = ReplayInput { bags, config };
             let (run, _) = match replay(&input) {
                 Ok(r) => r,
                 Err(code) => return code,

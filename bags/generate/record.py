@@ -79,6 +79,27 @@ class ObjectSpec:
     # seconds simulated (and not recorded) before the recording starts, so that a model whose
     # initial pose is not at rest (contacts resolving) is at rest when the camera starts
     settle_s: float = 0.0
+    # --- corpus objects (bags/generate/corpus.py); the defaults keep the shipped bags' recorder ---
+    # a function returning the whole scene as an MjSpec (procedural objects), instead of `models`
+    builder: object = None
+    # joint name -> Coulomb friction (frictionloss) replacing the shipped value (N or N m)
+    friction: dict = field(default_factory=dict)
+    # body name -> mass (kg) replacing the shipped value (inertia scaled with it)
+    masses: dict = field(default_factory=dict)
+    # the push direction leaves the motion's direction by up to this angle (deg, uniform in angle
+    # and in azimuth about it); None: the shipped bags' N(0, 0.1^2) per axis added to it
+    perturb_deg: float = None
+    # seconds the force holds, and ramps up and down
+    hold_range: tuple = (0.4, 0.7)
+    ramp_s: float = 0.2
+    # joints pushed, in order (cycled); None: the order of `handles`
+    push_order: list = None
+    # scale each push's force (dry runs from the state at the push) until the pushed joint moves
+    # at least this fraction of its range; 0: no calibration
+    min_travel_frac: float = 0.0
+    # no gravity: the base model has none unless an effect declares it (corpus objects are about
+    # structure and kinodynamics; gravity is an effect of its own)
+    gravity_off: bool = False
 
 
 def kitchen_model(item):
@@ -197,6 +218,15 @@ def adroit_spec(path, tilt):
 
 
 def build(spec_obj, effects):
+    if spec_obj.builder is not None:
+        spec = spec_obj.builder()
+        spec.visual.global_.offwidth, spec.visual.global_.offheight = 320, 240
+        spec.option.timestep = 0.001
+        if spec_obj.gravity_off:
+            spec.option.gravity = [0.0, 0.0, 0.0]
+        q, _ = look_at(spec_obj.camera_pos, spec_obj.camera_target)
+        spec.worldbody.add_camera(name="depth", pos=list(spec_obj.camera_pos), quat=list(q), fovy=58.0)
+        return spec.compile()
     tilt = (0.0, effects.get("gravity", 0.0), 0.0)
     first = spec_obj.models[0]
     spec = adroit_spec(first[1], tilt) if first[0] == "adroit" else model_spec(first, spec_obj.pos, tilt)
@@ -208,6 +238,8 @@ def build(spec_obj, effects):
         frame.attach_body(root, "mw_", "")
     q, _ = look_at(spec_obj.camera_pos, spec_obj.camera_target)
     spec.worldbody.add_camera(name="depth", pos=list(spec_obj.camera_pos), quat=list(q), fovy=58.0)
+    if spec_obj.gravity_off:
+        spec.option.gravity = [0.0, 0.0, 0.0]
     model = spec.compile()
     return model
 
@@ -334,6 +366,13 @@ class Recorder:
         m, e = self.model, self.effects
         for jname, c in self.spec_obj.damping.items():
             m.dof_damping[m.jnt_dofadr[self.joint_id(jname)]] = c
+        for jname, c in self.spec_obj.friction.items():
+            m.dof_frictionloss[m.jnt_dofadr[self.joint_id(jname)]] = c
+        for bname, mass in self.spec_obj.masses.items():
+            b = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, bname)
+            scale = mass / m.body_mass[b]
+            m.body_mass[b] = mass
+            m.body_inertia[b] *= scale
         for jname in self.spec_obj.handles:
             j = self.joint_id(jname)
             dof = m.jnt_dofadr[j]
@@ -442,6 +481,15 @@ class Recorder:
         else:
             direction = axis.copy()
         direction = sign * direction / np.linalg.norm(direction)
+        if isinstance(perturb, tuple):
+            # (angle off the motion, azimuth about it)
+            angle, azimuth = perturb
+            ref = np.array([0.0, 0.0, 1.0]) if abs(direction[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+            u = np.cross(direction, ref)
+            u /= np.linalg.norm(u)
+            v = np.cross(direction, u)
+            side = math.cos(azimuth) * u + math.sin(azimuth) * v
+            return math.cos(angle) * direction + math.sin(angle) * side
         direction = direction + perturb
         return direction / np.linalg.norm(direction)
 
@@ -484,32 +532,122 @@ class Recorder:
 
     # -- the recording -----------------------------------------------------------------------
 
-    def record(self, out, interactions, declared):
-        m, d = self.model, self.data
-        rng = self.rng
-        w = Writer(str(out), chunk_size=256 * 1024)
-        schemas = {t: w.register_msgdef(t, schema_text(t)) for t in (
-            "sensor_msgs/msg/PointCloud2", "geometry_msgs/msg/WrenchStamped", "tf2_msgs/msg/TFMessage")}
-        w.add_metadata("bom_ground_truth", {"json": json.dumps(self.ground_truth(declared))})
-        t0 = 1.0  # stamps start at 1 s
-        cam_pos, cam_rot = self.camera_pose()
-        w.write_message("/tf_static", schemas["tf2_msgs/msg/TFMessage"],
-                        {"transforms": [transform("world", "camera_optical", 0.0, cam_pos, cam_rot)]}, 0, 0)
-        # The schedule: rest, then per interaction ramp 0.2 s, hold, release 0.2 s, rest 1.5 s.
-        joints = list(self.spec_obj.handles)
+    def plan(self, interactions):
+        """The schedule: rest, then per interaction ramp, hold, release, rest 1.5 s. Entries
+        `[start, full, release, end, joint, magnitude, (perturbation, contact offset)]`."""
+        rng, so = self.rng, self.spec_obj
+        joints = list(so.push_order or so.handles)
         plan = []
         t = 0.5
         for k in range(interactions):
             jname = joints[k % len(joints)]
-            hold = rng.uniform(0.4, 0.7)
-            handle = self.spec_obj.handles[jname]
-            forces = handle[-1] if len(handle) > 2 and len(handle[-1]) == 2 else self.spec_obj.force_range
+            hold = rng.uniform(*so.hold_range)
+            handle = so.handles[jname]
+            forces = handle[-1] if len(handle) > 2 and len(handle[-1]) == 2 else so.force_range
             mag = rng.uniform(*forces)
-            perturb = rng.normal(0.0, 0.1, 3)
+            if so.perturb_deg is None:
+                perturb = rng.normal(0.0, 0.1, 3)
+            else:
+                perturb = (math.radians(rng.uniform(0.0, so.perturb_deg)), rng.uniform(0.0, 2.0 * math.pi))
             offset = rng.uniform(-0.02, 0.02, 3)  # contact point varies by up to 2 cm per axis
-            plan.append((t, t + 0.2, t + 0.2 + hold, t + 0.4 + hold, jname, mag, (perturb, offset)))
-            t += 0.4 + hold + 1.5
-        duration = t
+            r = so.ramp_s
+            plan.append([t, t + r, t + r + hold, t + 2 * r + hold, jname, mag, (perturb, offset)])
+            t += 2 * r + hold + 1.5
+        return plan, t
+
+    def push_force(self, now, entry, sign):
+        """Force and contact point of a push at time `now` (the pushed joint's current state)."""
+        m, d = self.model, self.data
+        start, full, release, end, jname, mag, (perturb, offset) = entry
+        jid = self.joint_id(jname)
+        r = self.spec_obj.ramp_s
+        scale = min(1.0, (now - start) / r) if now < full else (1.0 if now < release else max(0.0, (end - now) / r))
+        body = m.jnt_bodyid[jid]
+        # The offset is fixed in the pushed body, so the contact point moves with it.
+        contact = self.handle_point(jname) + d.xmat[body].reshape(3, 3) @ offset
+        direction = self.push_direction(jname, sign, perturb)
+        return mag * scale * direction, contact, body
+
+    def careful_stop(self, entry, sign, q_start):
+        """Whether the careful robot lets go now: the pushed joint within 30% of its range of the
+        stop it heads for, or another joint the push moves near its stop."""
+        m, d = self.model, self.data
+        jid = self.joint_id(entry[4])
+        lo, hi = m.jnt_range[jid]
+        qv = d.qpos[m.jnt_qposadr[jid]]
+        margin = 0.3 * (hi - lo)
+        return (sign > 0 and qv > hi - margin) or (sign < 0 and qv < lo + margin) or self.other_joint_near_stop(entry[4], q_start)
+
+    def dry_push(self, entry, sign, q_start):
+        """Simulate one push from the current state, without recording, on a copy of the data:
+        the pushed joint's largest excursion, and whether any joint came within 2% of its range
+        of a stop (the recorder's test) up to 1.5 s after the push."""
+        import copy
+        m = self.model
+        saved = self.data
+        self.data = copy.copy(saved)
+        try:
+            d = self.data
+            jid = self.joint_id(entry[4])
+            q0 = d.qpos[m.jnt_qposadr[jid]]
+            travel, hit, stopped = 0.0, False, False
+            now = entry[0]
+            while now < entry[3] + 1.5:
+                d.qfrc_applied[:] = 0.0
+                if now < entry[3] and not stopped:
+                    if self.careful_stop(entry, sign, q_start):
+                        stopped = True
+                    else:
+                        force, contact, body = self.push_force(now, entry, sign)
+                        mujoco.mj_applyFT(m, d, force, np.zeros(3), contact, body, d.qfrc_applied)
+                mujoco.mj_step(m, d)
+                now += m.opt.timestep
+                travel = max(travel, abs(d.qpos[m.jnt_qposadr[jid]] - q0))
+                for jname in self.spec_obj.handles:
+                    j = self.joint_id(jname)
+                    lo, hi = m.jnt_range[j]
+                    qv = d.qpos[m.jnt_qposadr[j]]
+                    # a margin over the recorder's 2%: the recording must pass its check
+                    hit |= qv < lo + 0.03 * (hi - lo) or qv > hi - 0.03 * (hi - lo)
+            return travel, hit
+        finally:
+            self.data = saved
+
+    def calibrate(self, entry, sign, q_start):
+        """Scale the push's magnitude (dry runs) until the pushed joint moves at least
+        `min_travel_frac` of its range without any joint reaching a stop."""
+        m = self.model
+        lo, hi = m.jnt_range[self.joint_id(entry[4])]
+        want = self.spec_obj.min_travel_frac * (hi - lo)
+        for _ in range(8):
+            travel, hit = self.dry_push(entry, sign, q_start)
+            if hit:
+                entry[5] *= 0.6
+            elif travel < want:
+                entry[5] *= 1.7
+            else:
+                return
+
+    def record(self, out, interactions, declared, only=None, t0=1.0):
+        """Record `interactions` pushes into `out`; with `only`, just that one interaction of the
+        schedule (an episode from the object's initial state), started 0.5 s in. Stamps start at
+        `t0` seconds."""
+        m, d = self.model, self.data
+        w = Writer(str(out), chunk_size=256 * 1024)
+        schemas = {t: w.register_msgdef(t, schema_text(t)) for t in (
+            "sensor_msgs/msg/PointCloud2", "geometry_msgs/msg/WrenchStamped", "tf2_msgs/msg/TFMessage")}
+        w.add_metadata("bom_ground_truth", {"json": json.dumps(self.ground_truth(declared))})
+        cam_pos, cam_rot = self.camera_pose()
+        w.write_message("/tf_static", schemas["tf2_msgs/msg/TFMessage"],
+                        {"transforms": [transform("world", "camera_optical", t0 - 1.0, cam_pos, cam_rot)]},
+                        int((t0 - 1.0) * 1e9), int((t0 - 1.0) * 1e9))
+        plan, duration = self.plan(interactions)
+        if only is not None:
+            entry = plan[only]
+            shift = entry[0] - 0.5
+            plan = [[v - shift for v in entry[:4]] + entry[4:]]
+            duration = plan[0][3] + 1.5
+        joints = list(self.spec_obj.handles)
         steps = int(round(duration / m.opt.timestep))
         next_cloud, next_wrench = 0.0, 0.0
         seq = 0
@@ -526,7 +664,8 @@ class Recorder:
         for step in range(steps + 1):
             now = step * m.opt.timestep
             force = np.zeros(3)
-            for k, (start, full, release, end, jname, mag, perturb) in enumerate(plan):
+            for k, entry in enumerate(plan):
+                start, end, jname = entry[0], entry[3], entry[4]
                 if start <= now < end and k not in stopped:
                     jid = self.joint_id(jname)
                     lo, hi = m.jnt_range[jid]
@@ -535,19 +674,12 @@ class Recorder:
                         # Each push heads for the farther stop.
                         sign[jname] = 1.0 if (hi - qv) >= (qv - lo) else -1.0
                         q_start = {j: d.qpos[m.jnt_qposadr[self.joint_id(j)]] for j in joints}
-                    margin = 0.3 * (hi - lo)
-                    if "limit" not in self.effects and (
-                            (sign[jname] > 0 and qv > hi - margin) or (sign[jname] < 0 and qv < lo + margin)
-                            or self.other_joint_near_stop(jname, q_start)):
+                        if self.spec_obj.min_travel_frac > 0.0:
+                            self.calibrate(entry, sign[jname], q_start)
+                    if "limit" not in self.effects and self.careful_stop(entry, sign[jname], q_start):
                         stopped.add(k)
                         continue
-                    scale = min(1.0, (now - start) / 0.2) if now < full else (1.0 if now < release else max(0.0, (end - now) / 0.2))
-                    perturb, offset = perturb
-                    body = m.jnt_bodyid[jid]
-                    # The offset is fixed in the pushed body, so the contact point moves with it.
-                    contact = self.handle_point(jname) + d.xmat[body].reshape(3, 3) @ offset
-                    direction = self.push_direction(jname, sign[jname], perturb)
-                    force = mag * scale * direction
+                    force, contact, body = self.push_force(now, entry, sign[jname])
                     d.qfrc_applied[:] = 0.0
                     mujoco.mj_applyFT(m, d, force, np.zeros(3), contact, body, d.qfrc_applied)
                     break
@@ -579,6 +711,7 @@ class Recorder:
                 qv = d.qpos[m.jnt_qposadr[self.joint_id(jname)]]
                 q_min[jname], q_max[jname] = min(q_min[jname], qv), max(q_max[jname], qv)
         w.finish()
+        self.travel = {j: q_max[j] - q_min[j] for j in joints}
         self.limits_reached = []
         for jname in joints:
             lo, hi = m.jnt_range[self.joint_id(jname)]

@@ -2,6 +2,8 @@
 //! `bom_ground_truth` (the paper's Joint%, Graph MSE and IdE, Table 1, plus parent accuracy and
 //! axis errors).
 
+pub mod corpus;
+
 use nalgebra::Vector3;
 use serde::Serialize;
 
@@ -81,7 +83,8 @@ pub struct Metrics {
     pub baselines: Option<Baselines>,
 }
 
-fn median(mut v: Vec<f64>) -> Option<f64> {
+/// The median of `v` (`None` when empty).
+pub fn median(mut v: Vec<f64>) -> Option<f64> {
     if v.is_empty() {
         return None;
     }
