@@ -85,3 +85,43 @@ fn a_bag_without_ground_truth_is_invalid_input() {
     assert_eq!(code, 3, "{err}");
     assert!(err.contains("nogt.mcap") && err.contains("bom_ground_truth"), "{err}");
 }
+
+/// `bom eval --corpus` over a folder of object folders: the real drawer track and a real door
+/// track are scored with their calibration; a folder whose bag has no ground truth and one whose
+/// bag is not MCAP are each reported in one line and skipped, and the aggregate says how many
+/// were scored.
+#[test]
+fn a_corpus_is_scored_and_bad_objects_are_skipped() {
+    let dir = tempfile::tempdir().unwrap();
+    let object = |name: &str| {
+        let d = dir.path().join(name);
+        std::fs::create_dir_all(&d).unwrap();
+        d
+    };
+    std::fs::copy("bags/sturm/drawer_001.mcap", object("a_drawer").join("drawer.mcap")).unwrap();
+    std::fs::copy("bags/sturm/left_door_001.mcap", object("b_door").join("door.mcap")).unwrap();
+    let src = shared_dir().join("data/sturm-articulation/second_set/drawer/002.log");
+    bom::import::import_tracks(&[src], &object("c_nogt").join("nogt.mcap"), None, 30.0, 4).unwrap();
+    std::fs::write(object("d_broken").join("broken.mcap"), b"not an mcap file").unwrap();
+    let json = dir.path().join("corpus.json");
+    let (code, stdout, stderr) = bom(&["eval", "--corpus", dir.path().to_str().unwrap(), "--json", json.to_str().unwrap(), "--jobs", "2"]);
+    assert_eq!(code, 0, "{stderr}");
+    let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert_eq!(r["listed"], 4, "{r}");
+    assert_eq!(r["scored"], 2, "{r}");
+    let skipped = r["skipped"].as_array().unwrap();
+    assert_eq!(skipped.len(), 2);
+    assert!(skipped.iter().any(|s| s.as_str().unwrap().contains("c_nogt") && s.as_str().unwrap().contains("bom_ground_truth")), "{skipped:?}");
+    assert!(skipped.iter().any(|s| s.as_str().unwrap().contains("broken.mcap")), "{skipped:?}");
+    assert!(stdout.contains("2 object runs scored of 4 listed"), "{stdout}");
+    let agg = &r["aggregate"][0];
+    assert_eq!(agg["parts"], 2);
+    assert_eq!(agg["joint_accuracy"], 1.0, "{agg}");
+    let cal = &agg["calibration"];
+    assert!(cal["brier"].as_f64().unwrap() < 0.1, "{cal}");
+    assert_eq!(cal["wrong_confident"], 0);
+    let bins = cal["reliability"].as_array().unwrap();
+    assert_eq!(bins.iter().map(|b| b["count"].as_u64().unwrap()).sum::<u64>(), 6, "three probabilities per part");
+    // One line per skipped object on stderr.
+    assert_eq!(stderr.lines().filter(|l| l.starts_with("warning: skipped")).count(), 2, "{stderr}");
+}
