@@ -30,6 +30,10 @@ pub struct WindowConfig {
     pub margin_after_s: f64,
     pub merge_gap_s: f64,
     pub min_duration_s: f64,
+    /// Dynamic mode: a break in the clouds longer than this \[s\] between two windows (separate
+    /// episodes, often of a reset object) cuts the tie of the later window's start to where the
+    /// earlier one left the joint ([`crate::model::likelihood::Grid::max_unobserved_s`]).
+    pub max_unobserved_s: f64,
 }
 
 impl Default for WindowConfig {
@@ -45,6 +49,7 @@ impl Default for WindowConfig {
             margin_after_s: 0.7,
             merge_gap_s: 0.2,
             min_duration_s: 0.2,
+            max_unobserved_s: 5.0,
         }
     }
 }

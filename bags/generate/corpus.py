@@ -350,6 +350,9 @@ def asset_object(seed):
 
         def build_spec():
             spec = mujoco.MjSpec.from_file(str(door))
+            # robosuite compiles its objects inside a world that sets angles in radians; alone,
+            # MuJoCo's default (degrees) made the door's 0.4 rad range 0.4 degrees
+            spec.compiler.degree = False
             # its latch ships with a return spring: an effect this corpus leaves out
             spec.joint("latch_joint").stiffness = [0.0, 0.0, 0.0]
             spec.worldbody.add_light(pos=[0, -1.5, 3], dir=[0, 0.5, -1])

@@ -495,7 +495,7 @@ mod tests {
         let b2 = &c.reliability[2];
         assert_eq!(b2.count, 4);
         assert!((b2.observed_frequency.unwrap() - 0.25).abs() < 1e-12);
-        // 0.36 + 0.16 + 0.04 for the right call, 0.04 + 0.36 + 0.64 for the wrong one
-        assert!((c.brier.unwrap() - 0.8).abs() < 1e-12);
+        // 0.04 + 0.16 + 0.04 for the right call, 0.04 + 0.36 + 0.64 for the wrong one
+        assert!((c.brier.unwrap() - 0.64).abs() < 1e-12);
     }
 }

@@ -572,8 +572,8 @@ fn dynamics_pass(
     for (w, win) in ev.windows.iter().enumerate() {
         let gx_before = scores.is_some().then(|| gx.clone());
         // Between windows no force acts: the joint rests where the last window left it, up to
-        // the same deviation scale.
-        if w > 0 {
+        // the same deviation scale — while the object is watched (not across separate episodes).
+        if w > 0 && win.continues {
             let (a, b) = (ev.windows[w - 1].frames[ev.windows[w - 1].frames.len() - 1], win.frames[0]);
             l += rest_term(&s.q, a, b, rest_sd, dyncfg.deviation_log_sd, &mut gq, &mut gx[3]);
         }
@@ -698,6 +698,23 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
         // no axis yet worth keeping.
         let data = theta.clone();
         w.warm_start(ev, &layout, &mut theta);
+        // A part whose most probable parent in the previous fit is not the one the data of all
+        // windows now suggest (the start tree) takes its discrete factors from the data again:
+        // otherwise the first windows' tree can trap later evidence. A cabinet hung from a drawer
+        // that had not moved yet (the contact prior's choice while both stood still) made the
+        // drawer's prismatic joint move the cabinet too, so the drawer stayed rigid with P = 1.00
+        // after the window that pushed it (corpus object 57 of the tune split); natural-gradient
+        // steps change one factor at a time and cannot leave such a joint optimum.
+        for i in 0..n {
+            let o = layout.parent_logits[i];
+            let warm_parent = (0..=n).filter(|&j| j != i + 1).max_by(|&a, &b| theta[o + a].total_cmp(&theta[o + b])).unwrap_or(0);
+            if warm_parent != start.parent[i] {
+                tracing::debug!("part {}: warm parent {warm_parent} differs from the start tree's {}; discrete factors from the data", ev.parts[i].label, start.parent[i]);
+                theta[o..o + n + 1].copy_from_slice(&data[o..o + n + 1]);
+                let t = layout.type_logits[i];
+                theta[t..t + 3].copy_from_slice(&data[t..t + 3]);
+            }
+        }
         for (i, blocks) in layout.blocks.iter().enumerate() {
             let pre = structure::observed_displacements(ev, start.parent[i]);
             for b in blocks {
@@ -771,13 +788,22 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
                         grad[vi] += gvm - vm;
                         grad[vi + 1] += gvs * vs + 1.0 - vs * vs;
                     } else {
-                        // Dynamic mode: the first window's start (later ones follow by continuity,
+                        // Dynamic mode: the start of the first window and of every window that
+                        // does not continue the previous one (later ones follow by continuity,
                         // the rest by the physics prior).
-                        let (m0, s0) = (theta[qm], theta[qs].exp());
                         let var = model.window_start_sd_m.powi(2);
-                        a += -(m0 * m0 + s0 * s0) / (2.0 * var) - 0.5 * (var * 2.0 * std::f64::consts::PI).ln();
-                        grad[qm] -= m0 / var;
-                        grad[qs] -= s0 * s0 / var;
+                        let starts = std::iter::once(0).chain(ev.windows.iter().filter(|w| !w.continues).map(|w| w.frames[0]));
+                        let mut done = Vec::new();
+                        for f in starts {
+                            if done.contains(&f) {
+                                continue;
+                            }
+                            done.push(f);
+                            let (m0, s0) = (theta[qm + f], theta[qs + f].exp());
+                            a += -(m0 * m0 + s0 * s0) / (2.0 * var) - 0.5 * (var * 2.0 * std::f64::consts::PI).ln();
+                            grad[qm + f] -= m0 / var;
+                            grad[qs + f] -= s0 * s0 / var;
+                        }
                     }
                     // Entropy of the coordinates' guide.
                     for t in 0..k_frames {

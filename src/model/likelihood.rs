@@ -78,6 +78,11 @@ pub struct Grid {
     /// biased damping and friction; the default 0.7 s covers a heavy door's coast, so that rest
     /// frames begin once the part has stopped).
     pub rest_after_s: f64,
+    /// A break in the clouds longer than this \[s\] between two windows cuts the tie between
+    /// them (dynamic mode, [`WindowEvidence::continues`]): separate episodes, such as the bags of an
+    /// interaction dataset, often start from a reset object, and nothing unobserved is known to
+    /// have stayed where it was.
+    pub max_unobserved_s: f64,
     /// Integration step of the physics in dynamic mode \[s\].
     pub step_s: f64,
     /// Surface points closer than this to another part count as touching it \[m\]; each model
@@ -100,6 +105,10 @@ pub struct WindowEvidence {
     pub frame_substep: Vec<usize>,
     /// The pushed part (index into [`Evidence::parts`]), if known.
     pub pushed: Option<usize>,
+    /// Whether the object was watched without a break (no gap in the clouds over
+    /// [`Grid::max_unobserved_s`]) since the previous window: only then does the joint start this
+    /// window where the previous one left it. False for the first window.
+    pub continues: bool,
     /// Integration step \[s\].
     pub h: f64,
     /// Per integration step: force \[N\], torque \[N·m\] and point of application \[m\], fixed frame
@@ -250,6 +259,13 @@ impl Evidence {
                 })
                 .collect()
         };
+        let mut dynamic = dynamic;
+        let mut seen: Vec<f64> = tracks.values().flat_map(|obs| obs.iter().map(|o| o.stamp)).collect();
+        seen.sort_by(|a, b| a.total_cmp(b));
+        for w in 1..dynamic.len() {
+            let (a, b) = (times[*dynamic[w - 1].frames.last().expect("a window has frames")], times[dynamic[w].frames[0]]);
+            dynamic[w].continues = longest_gap(&seen, a, b) <= grid.max_unobserved_s;
+        }
         let effects = labels.iter().map(|l| effects.get(l).copied().unwrap_or_default()).collect();
         Evidence { times, window_start, parts, contact, windows: dynamic, effects }
     }
@@ -294,7 +310,20 @@ fn window_evidence(times: &[f64], frames: Vec<usize>, rest: Vec<usize>, pushed: 
         torque.push(tq);
         point.push(p);
     }
-    Some(WindowEvidence { frames, rest, frame_substep, pushed, h, force, torque, point })
+    Some(WindowEvidence { frames, rest, frame_substep, pushed, continues: false, h, force, torque, point })
+}
+
+/// The longest time between consecutive stamps of `sorted` within `[a, b]`, the ends included \[s\].
+fn longest_gap(sorted: &[f64], a: f64, b: f64) -> f64 {
+    let lo = sorted.partition_point(|&t| t < a);
+    let hi = sorted.partition_point(|&t| t <= b);
+    let mut prev = a;
+    let mut gap: f64 = 0.0;
+    for &t in &sorted[lo..hi] {
+        gap = gap.max(t - prev);
+        prev = t;
+    }
+    gap.max(b - prev)
 }
 
 /// Log-density of a `dim`-variate Student-t with `nu` degrees of freedom (Gaussian when `nu` is
@@ -399,4 +428,22 @@ pub fn coordinate_prior(ev: &Evidence, m: &[f64], s: &[f64], vm: f64, vs: f64, c
         }
     }
     (v, gm, gs, g_vm, g_vs)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::longest_gap;
+
+    /// The break between two windows counts its ends: clouds every 1/30 s are no gap, a bag that
+    /// ends 300 s before the next begins is one, and so is a stream that stops before `b`.
+    #[test]
+    fn longest_gap_between_windows() {
+        let stream: Vec<f64> = (0..300).map(|k| k as f64 / 30.0).collect();
+        assert!(longest_gap(&stream, 2.0, 5.0) < 0.04);
+        let mut episodes = stream.clone();
+        episodes.extend((0..300).map(|k| 310.0 + k as f64 / 30.0));
+        assert!((longest_gap(&episodes, 9.0, 311.0) - (310.0 - 299.0 / 30.0)).abs() < 1e-9);
+        assert!((longest_gap(&stream, 9.0, 20.0) - (20.0 - 299.0 / 30.0)).abs() < 1e-9);
+        assert_eq!(longest_gap(&[], 1.0, 3.0), 2.0);
+    }
 }
