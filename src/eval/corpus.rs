@@ -223,7 +223,7 @@ fn score(o: &CorpusObject, layout: Layout, cfg: &Config) -> Result<ObjectRow, St
         Layout::Episodes => &o.episodes,
     };
     if bags.is_empty() {
-        return Err(format!("{}: no {layout:?} bags listed", o.name).to_lowercase());
+        return Err(format!("{}: no {} bags listed", o.name, format!("{layout:?}").to_lowercase()));
     }
     let t = Instant::now();
     let run = pipeline::replay(bags, cfg).map_err(|e| format!("{}: {e}", o.name))?;
