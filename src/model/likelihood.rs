@@ -244,7 +244,7 @@ impl Evidence {
         let disps: Vec<&[Option<Isometry3<f64>>]> = parts.iter().map(|p: &PartSeries| p.disp.as_slice()).collect();
         let contact = geometry::contact_areas(&disps, &models, grid.contact_range_m, grid.voxel_m);
         let labels: Vec<u32> = parts.iter().map(|p| p.label).collect();
-        let dynamic = if wrenches.is_empty() {
+        let mut dynamic: Vec<WindowEvidence> = if wrenches.is_empty() {
             Vec::new()
         } else {
             windows
@@ -259,7 +259,6 @@ impl Evidence {
                 })
                 .collect()
         };
-        let mut dynamic = dynamic;
         let mut seen: Vec<f64> = tracks.values().flat_map(|obs| obs.iter().map(|o| o.stamp)).collect();
         seen.sort_by(|a, b| a.total_cmp(b));
         for w in 1..dynamic.len() {
