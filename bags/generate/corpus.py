@@ -76,10 +76,19 @@ class Builder:
         self.handles = {}  # joint name -> ("body", body, offset)
         self.damping = {}
         self.friction = {}
-        self.ops = []  # closures applied to a fresh MjSpec, in order
+        self.desc = []  # one line per movable part
 
     def rgba(self):
         return [float(v) for v in self.rng.uniform(0.25, 0.95, 3)] + [1.0]
+
+    def register(self, part, joint, offset, desc, kind=None):
+        """A movable part `part` (its own body) on `joint`, pushed at `offset` in its body; with
+        `kind` (`hinge` or `slide`), its joint's damping and friction are drawn here."""
+        if kind is not None:
+            self.joint_dynamics(joint, kind)
+        self.parts[part] = [part]
+        self.handles[joint] = ("body", part, offset)
+        self.desc.append(desc)
 
     def joint_dynamics(self, name, kind):
         rng = self.rng
@@ -130,7 +139,6 @@ def procedural(seed):
     cols = 1 if len(front) <= 1 else int(rng.choice([1, 2])) if len(front) == 2 else 2
     rows = max(1, math.ceil(len(front) / cols))
     cell_w, cell_h = (W - 2 * t) / cols, (H - 2 * t) / rows
-    desc = []
     spec_ops = []
 
     def carcass(spec):
@@ -170,9 +178,7 @@ def procedural(seed):
                 lid.add_joint(name=jn, type=HINGE, axis=[-1, 0, 0], pos=[0, 0, 0], range=[0, 1.4])
                 box_geoms(lid, [((0, -D / 2, 0), (W / 2, D / 2, 0.01)), ((0, -D + 0.02, 0.03), (0.06, 0.01, 0.02))], rgba, mass)
             spec_ops.append(op)
-            b.parts[name] = [name]
-            b.handles[jn] = ("body", name, (0.0, -D + 0.02, 0.05))
-            desc.append(f"{name} (revolute, horizontal axis)")
+            b.register(name, jn, (0.0, -D + 0.02, 0.05), f"{name} (revolute, horizontal axis)")
             continue
         c, r = cells.pop()
         cx = -W / 2 + t + (c + 0.5) * cell_w
@@ -213,21 +219,13 @@ def procedural(seed):
                     latch.add_joint(name=f"{ln}_hinge", type=HINGE, axis=[0, -1, 0], range=[-1.2, 1.2])
                     box_geoms(latch, [((0, -0.015, 0), (0.015, 0.015, 0.015)), ((-s * 0.06, -0.03, 0), (0.07, 0.012, 0.012))], lrgba, lm)
             spec_ops.append(op)
-            b.parts[name] = [name]
-            b.handles[jn] = ("body", name, (hxh, -0.05, 0.0))
-            desc.append(f"{name} (revolute, {'left' if left else 'right'} hinge)")
+            b.register(name, jn, (hxh, -0.05, 0.0), f"{name} (revolute, {'left' if left else 'right'} hinge)")
             if sub is not None and sub[0] == "hatch":
                 hn = sub[1]
-                b.joint_dynamics(f"{hn}_slide", "slide")
-                b.parts[hn] = [hn]
-                b.handles[f"{hn}_slide"] = ("body", hn, (0.0, -0.035, 0.0))
-                desc.append(f"{hn} (prismatic on {name})")
+                b.register(hn, f"{hn}_slide", (0.0, -0.035, 0.0), f"{hn} (prismatic on {name})", kind="slide")
             elif sub is not None:
                 ln = sub[1]
-                b.joint_dynamics(f"{ln}_hinge", "hinge")
-                b.parts[ln] = [ln]
-                b.handles[f"{ln}_hinge"] = ("body", ln, (-s * 0.12, -0.03, 0.0))
-                desc.append(f"{ln} (revolute on {name})")
+                b.register(ln, f"{ln}_hinge", (-s * 0.12, -0.03, 0.0), f"{ln} (revolute on {name})", kind="hinge")
         elif e in ("drawer", "drawer_box"):
             name = fresh("drawer")
             mass = log_uniform(rng, 0.1, 4.0)
@@ -255,17 +253,12 @@ def procedural(seed):
                     lid.add_joint(name=f"{ln}_hinge", type=HINGE, axis=[-1, 0, 0], range=[0, 1.4])
                     box_geoms(lid, [((0, -depth * 0.3, 0), (w * 0.3, depth * 0.3, 0.008))], lrgba, bm * 0.3)
             spec_ops.append(op)
-            b.parts[name] = [name]
-            b.handles[jn] = ("body", name, (0.0, -depth / 2 - 0.05, 0.0))
-            desc.append(f"{name} (prismatic)")
+            b.register(name, jn, (0.0, -depth / 2 - 0.05, 0.0), f"{name} (prismatic)")
             if box is not None:
                 bn, ln = box[0], box[1]
                 # The box is fixed to the drawer: one part with it (same label).
                 b.parts[name].append(bn)
-                b.joint_dynamics(f"{ln}_hinge", "hinge")
-                b.parts[ln] = [ln]
-                b.handles[f"{ln}_hinge"] = ("body", ln, (0.0, -depth * 0.55, 0.01))
-                desc.append(f"{ln} (revolute on {name}, horizontal)")
+                b.register(ln, f"{ln}_hinge", (0.0, -depth * 0.55, 0.01), f"{ln} (revolute on {name}, horizontal)", kind="hinge")
         elif e == "flap":
             name = fresh("flap")
             mass = log_uniform(rng, 0.1, 3.0)
@@ -278,9 +271,7 @@ def procedural(seed):
                 fl.add_joint(name=jn, type=HINGE, axis=[1, 0, 0], range=[0.0, 1.4])
                 box_geoms(fl, [((0, 0, h / 2), (w / 2, 0.01, h / 2)), ((0, -0.03, h - 0.04), (min(0.08, w / 4), 0.02, 0.012))], rgba, mass)
             spec_ops.append(op)
-            b.parts[name] = [name]
-            b.handles[jn] = ("body", name, (0.0, -0.05, h - 0.04))
-            desc.append(f"{name} (revolute, horizontal axis at the bottom)")
+            b.register(name, jn, (0.0, -0.05, h - 0.04), f"{name} (revolute, horizontal axis at the bottom)")
         elif e in ("slider", "slider_flap"):
             name = fresh("slider")
             mass = log_uniform(rng, 0.1, 3.0)
@@ -300,15 +291,10 @@ def procedural(seed):
                     f.add_joint(name=f"{fn}_hinge", type=HINGE, axis=[1, 0, 0], range=[0.0, 1.3])
                     box_geoms(f, [((0, 0, h * 0.17), (sw * 0.3, 0.008, h * 0.17)), ((0, -0.02, h * 0.3), (0.03, 0.012, 0.01))], frgba, fm)
             spec_ops.append(op)
-            b.parts[name] = [name]
-            b.handles[jn] = ("body", name, (-sw / 2 + 0.04, -0.05, 0.0))
-            desc.append(f"{name} (prismatic, sideways)")
+            b.register(name, jn, (-sw / 2 + 0.04, -0.05, 0.0), f"{name} (prismatic, sideways)")
             if fl is not None:
                 fn = fl[0]
-                b.joint_dynamics(f"{fn}_hinge", "hinge")
-                b.parts[fn] = [fn]
-                b.handles[f"{fn}_hinge"] = ("body", fn, (0.0, -0.03, h * 0.3))
-                desc.append(f"{fn} (revolute on {name}, horizontal)")
+                b.register(fn, f"{fn}_hinge", (0.0, -0.03, h * 0.3), f"{fn} (revolute on {name}, horizontal)", kind="hinge")
 
     def build_spec():
         spec = mujoco.MjSpec()
@@ -320,7 +306,7 @@ def procedural(seed):
         return spec
 
     target = (0.0, 0.0, base_z)
-    return b, build_spec, target, desc
+    return b, build_spec, target, b.desc
 
 
 # --------------------------------------------------------------------------------------------
