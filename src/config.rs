@@ -7,7 +7,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::criticism::CriticismConfig;
 use crate::inference::svi::SviConfig;
-use crate::input::Topics;
+use crate::input::{InputLimits, Topics};
 use crate::model::ModelConfig;
 use crate::perception::PerceptionConfig;
 use crate::windows::WindowConfig;
@@ -19,6 +19,8 @@ pub struct Config {
     /// The fixed frame, node 0 of every kinematic tree.
     pub fixed_frame: String,
     pub topics: Topics,
+    /// Bounds on input sizes and plausible values (bad input is warned about, counted, dropped).
+    pub input: InputLimits,
     pub perception: PerceptionConfig,
     pub windows: WindowConfig,
     pub model: ModelConfig,
@@ -38,13 +40,21 @@ impl Config {
     /// A one-line description naming the file and the offending key.
     pub fn load(path: &Path) -> Result<Config, String> {
         let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
-        let value: serde_yaml::Value = serde_yaml::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+        Self::from_yaml(&text, &path.display().to_string())
+    }
+
+    /// Parse settings from YAML text, as [`Config::load`]; `source` names it in errors.
+    ///
+    /// # Errors
+    /// A one-line description naming `source` and the offending key.
+    pub fn from_yaml(text: &str, source: &str) -> Result<Config, String> {
+        let value: serde_yaml::Value = serde_yaml::from_str(text).map_err(|e| format!("{source}: {e}"))?;
         let inner = value
             .get("bom")
             .and_then(|b| b.get("ros__parameters"))
             .cloned()
             .unwrap_or(value);
-        let mut cfg: Config = serde_yaml::from_value(inner).map_err(|e| format!("{}: {e}", path.display()))?;
+        let mut cfg: Config = serde_yaml::from_value(inner).map_err(|e| format!("{source}: {e}"))?;
         if cfg.fixed_frame.is_empty() {
             cfg.fixed_frame = "world".into();
         }
@@ -65,5 +75,32 @@ mod tests {
         std::fs::write(&bad, "bom:\n  ros__parameters:\n    windows: {force_open: 2}\n").unwrap();
         let e = Config::load(&bad).unwrap_err();
         assert!(e.contains("force_open"), "{e}");
+    }
+
+    /// Every key path of a YAML mapping, `a.b.c`; sequences are values.
+    fn key_paths(v: &serde_yaml::Value, prefix: &str, out: &mut std::collections::BTreeSet<String>) {
+        if let serde_yaml::Value::Mapping(m) = v {
+            for (k, v) in m {
+                let k = k.as_str().expect("string keys");
+                let path = if prefix.is_empty() { k.to_string() } else { format!("{prefix}.{k}") };
+                key_paths(v, &path, out);
+                out.insert(path);
+            }
+        }
+    }
+
+    /// The README says `config/bom.yaml` lists every key: it holds exactly the keys of the
+    /// configuration structs (a key added to a struct and not to the file fails here).
+    #[test]
+    fn shipped_parameters_file_lists_every_key() {
+        let text = std::fs::read_to_string("config/bom.yaml").unwrap();
+        let file: serde_yaml::Value = serde_yaml::from_str(&text).unwrap();
+        let mut listed = std::collections::BTreeSet::new();
+        key_paths(&file["bom"]["ros__parameters"], "", &mut listed);
+        let mut all = std::collections::BTreeSet::new();
+        key_paths(&serde_yaml::to_value(Config::new()).unwrap(), "", &mut all);
+        let missing: Vec<_> = all.difference(&listed).collect();
+        let unknown: Vec<_> = listed.difference(&all).collect();
+        assert!(missing.is_empty() && unknown.is_empty(), "missing from config/bom.yaml: {missing:?}; not a setting: {unknown:?}");
     }
 }

@@ -85,6 +85,8 @@ pub struct NodeReport {
     pub clouds: u64,
     pub wrenches: u64,
     pub windows: usize,
+    /// Windows whose evidence was forgotten (`windows.node_max_windows_per_part`).
+    pub windows_forgotten: usize,
     pub updates: u64,
     /// Windows merged into a later inference run because the worker was busy.
     pub merged: u64,
@@ -94,6 +96,9 @@ pub struct NodeReport {
     pub latency_s: Vec<f64>,
     /// Stream time covered by clouds \[s\].
     pub stream_s: f64,
+    /// Panics caught in pose prediction and in the inference and criticism worker (each logged;
+    /// the node went on). Panics in perception are counted in `diagnostics` under the topic.
+    pub other_panics: u64,
     pub diagnostics: crate::diagnostics::Diagnostics,
 }
 
@@ -230,6 +235,23 @@ fn publish_update(p: &Publishers, u: &Update, cfg: &Config, report: &mut NodeRep
     }
 }
 
+/// The message of a caught panic.
+fn panic_text(p: &(dyn std::any::Any + Send)) -> String {
+    p.downcast_ref::<&str>().map(|s| s.to_string()).or_else(|| p.downcast_ref::<String>().cloned()).unwrap_or_else(|| "non-text panic".into())
+}
+
+/// Run `f` on the streaming pipeline; a panic inside (a defect met by some input) is caught,
+/// warned about and counted under `topic`, and the node goes on with the next message.
+fn guarded<R: Default>(on: &mut Online, topic: &str, f: impl FnOnce(&mut Online) -> R) -> R {
+    match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| f(on))) {
+        Ok(r) => r,
+        Err(p) => {
+            on.diag.warn(topic, "panic in perception", &format!("{}; message dropped, node goes on", panic_text(&*p)));
+            R::default()
+        }
+    }
+}
+
 /// Run the node until SIGINT or SIGTERM.
 ///
 /// # Errors
@@ -297,8 +319,9 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
     let slot = Arc::new(Mutex::new(Slot::default()));
     let wake = Arc::new(Notify::new());
     let (done_tx, mut done_rx) = mpsc::channel::<Update>(4);
+    let worker_panics = Arc::new(std::sync::atomic::AtomicU64::new(0));
     {
-        let (slot, wake, cfg) = (slot.clone(), wake.clone(), cfg.clone());
+        let (slot, wake, cfg, panics) = (slot.clone(), wake.clone(), cfg.clone(), worker_panics.clone());
         tokio::spawn(async move {
             let mut warm: Option<GuideState> = None;
             // Effects model criticism adopted, kept for every later update.
@@ -325,7 +348,8 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
                         continue;
                     }
                     Err(e) => {
-                        tracing::error!("inference task failed: {e}");
+                        panics.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                        tracing::error!("inference task failed: {e}; the node goes on with the next window");
                         slot.lock().expect("slot lock").busy = false;
                         continue;
                     }
@@ -349,7 +373,8 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
                         Some(Update { posterior, criticism: Some(criticism), job, closed_at })
                     }
                     Err(e) => {
-                        tracing::error!("model criticism task failed: {e}");
+                        panics.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                        tracing::error!("model criticism task failed: {e}; the node goes on with the next window");
                         None
                     }
                 };
@@ -392,10 +417,17 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
             first_stamp.get_or_insert(stamp);
             report.stream_s = stamp - first_stamp.unwrap_or(stamp);
             if let Some(p) = predictor.as_mut() {
-                let poses = p.predict(&obs);
-                let msg = messages::pose_array(&poses, Time::from_seconds(stamp), &cfg.fixed_frame);
-                if let Err(e) = pubs.poses.publish(msg) {
-                    tracing::warn!("publishing predicted part poses failed: {e:?}");
+                match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| p.predict(&obs))) {
+                    Ok(poses) => {
+                        let msg = messages::pose_array(&poses, Time::from_seconds(stamp), &cfg.fixed_frame);
+                        if let Err(e) = pubs.poses.publish(msg) {
+                            tracing::warn!("publishing predicted part poses failed: {e:?}");
+                        }
+                    }
+                    Err(e) => {
+                        report.other_panics += 1;
+                        tracing::error!("predicting part poses panicked: {}; poses of this cloud skipped", panic_text(&*e));
+                    }
                 }
             }
             report.clouds += 1;
@@ -408,13 +440,13 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
                 match m {
                     Ok((cloud, _)) => {
                         let t0 = cpu_time();
-                        let frames = on.cloud(&points_topic, &cloud);
+                        let frames = guarded(&mut on, &points_topic, |on| on.cloud(&points_topic, &cloud));
                         report.perception_s.push(cpu_time() - t0);
                         handle_frames(frames, &mut predictor, &mut first_stamp, &mut report);
                     }
                     Err(e) => on.diag.warn(&points_topic, "undecodable message", &format!("{e:?}; message skipped")),
                 }
-                if on.close_windows() > 0 {
+                if guarded(&mut on, &points_topic, |on| on.close_windows()) > 0 {
                     submit(&on, &mut report);
                 }
             }
@@ -422,28 +454,36 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
                 match m {
                     Ok((w, _)) => {
                         report.wrenches += 1;
-                        let frames = on.wrench(&wrench_topic, &w);
+                        let frames = guarded(&mut on, &wrench_topic, |on| on.wrench(&wrench_topic, &w));
                         handle_frames(frames, &mut predictor, &mut first_stamp, &mut report);
                     }
                     Err(e) => on.diag.warn(&wrench_topic, "undecodable message", &format!("{e:?}; message skipped")),
                 }
-                if on.close_windows() > 0 {
+                if guarded(&mut on, &wrench_topic, |on| on.close_windows()) > 0 {
                     submit(&on, &mut report);
                 }
             }
             Some(m) = tf.next() => match m {
-                Ok((msg, _)) => handle_frames(on.tf(&tf_topic, &msg, false), &mut predictor, &mut first_stamp, &mut report),
+                Ok((msg, _)) => {
+                    let frames = guarded(&mut on, &tf_topic, |on| on.tf(&tf_topic, &msg, false));
+                    handle_frames(frames, &mut predictor, &mut first_stamp, &mut report)
+                }
                 Err(e) => on.diag.warn(&tf_topic, "undecodable message", &format!("{e:?}; message skipped")),
             },
             Some(m) = tf_static.next() => match m {
-                Ok((msg, _)) => handle_frames(on.tf(&tf_static_topic, &msg, true), &mut predictor, &mut first_stamp, &mut report),
+                Ok((msg, _)) => {
+                    let frames = guarded(&mut on, &tf_static_topic, |on| on.tf(&tf_static_topic, &msg, true));
+                    handle_frames(frames, &mut predictor, &mut first_stamp, &mut report)
+                }
                 Err(e) => on.diag.warn(&tf_static_topic, "undecodable message", &format!("{e:?}; message skipped")),
             },
             Some(u) = done_rx.recv() => {
                 publish_update(&pubs, &u, &cfg, &mut report);
                 if let Some(posterior) = u.posterior {
+                    // A posterior that comes with criticism is the refit after an adopted effect.
+                    let what = if u.criticism.is_some() { "refitted posterior (effect adopted)" } else { "posterior" };
                     tracing::info!(
-                        "posterior after {} window(s) published {:.2} s after the window closed (ELBO {:.1})",
+                        "{what} after {} window(s) published {:.2} s after the window closed (ELBO {:.1})",
                         u.job.windows.len(), u.closed_at.elapsed().as_secs_f64(), posterior.elbo
                     );
                     predictor = Some(Predictor::new(posterior, &u.job));
@@ -455,7 +495,7 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
     }
 
     // End of stream: close open windows, let the worker finish, publish the last model.
-    if on.flush() > 0 {
+    if guarded(&mut on, &points_topic, |on| on.flush()) > 0 {
         submit(&on, &mut report);
     }
     loop {
@@ -479,8 +519,10 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
     }
     // Give reliable readers time to acknowledge the last samples before the participant goes.
     tokio::time::sleep(Duration::from_millis(500)).await;
-    report.windows = on.windows().len();
+    report.windows = on.windows_closed();
+    report.windows_forgotten = on.windows_forgotten();
     report.diagnostics = on.diag.clone();
+    report.other_panics += worker_panics.load(std::sync::atomic::Ordering::Relaxed);
     // Tear down in order: spinner, endpoints, node, then the participant, so that DDS can tell
     // its peers that the endpoints are gone.
     drop((points, wrench, tf, tf_static));
@@ -518,8 +560,8 @@ pub fn render_report(r: &NodeReport) -> String {
     let per_cloud = r.perception_s.iter().sum::<f64>() / r.perception_s.len().max(1) as f64;
     let rate = if r.stream_s > 0.0 { r.clouds as f64 / r.stream_s } else { 0.0 };
     s += &format!(
-        "bom node: {} clouds, {} wrenches, {} window(s), {} posterior update(s), {} window(s) merged into later runs\n",
-        r.clouds, r.wrenches, r.windows, r.updates, r.merged
+        "bom node: {} clouds, {} wrenches, {} window(s) ({} old ones forgotten), {} posterior update(s), {} window(s) merged into later runs\n",
+        r.clouds, r.wrenches, r.windows, r.windows_forgotten, r.updates, r.merged
     );
     s += &format!(
         "  perception: {:.1} ms CPU per cloud (median {:.1}), {:.0}% of one core at the stream's {:.1} Hz\n",
@@ -530,6 +572,9 @@ pub fn render_report(r: &NodeReport) -> String {
     );
     if !r.latency_s.is_empty() {
         s += &format!("  window closed -> posterior published: median {:.2} s, max {:.2} s\n", med(&r.latency_s), r.latency_s.iter().cloned().fold(0.0, f64::max));
+    }
+    if r.other_panics > 0 {
+        s += &format!("  panics caught in prediction, inference or criticism: {}\n", r.other_panics);
     }
     if r.diagnostics.total() > 0 {
         s += &format!("  bad input: {} event(s)\n", r.diagnostics.total());

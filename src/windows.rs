@@ -34,6 +34,11 @@ pub struct WindowConfig {
     /// episodes, often of a reset object) cuts the tie of the later window's start to where the
     /// earlier one left the joint ([`crate::model::likelihood::Grid::max_unobserved_s`]).
     pub max_unobserved_s: f64,
+    /// The live node keeps the evidence of at most this many most recent windows per pushed part
+    /// (kinematic mode: in all), so that memory and the time of an update stay bounded over hours
+    /// of pushes; older windows are forgotten, counted in the node's report. `bom replay` uses
+    /// every window of its bags.
+    pub node_max_windows_per_part: usize,
 }
 
 impl Default for WindowConfig {
@@ -50,6 +55,7 @@ impl Default for WindowConfig {
             merge_gap_s: 0.2,
             min_duration_s: 0.2,
             max_unobserved_s: 5.0,
+            node_max_windows_per_part: 4,
         }
     }
 }

@@ -6,20 +6,71 @@
 //! that cannot be opened at all is an error.
 
 pub mod pointcloud;
+pub mod stamps;
 pub mod tf;
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
-use mcap::read::{ChunkReader, LinearReader, Options};
 use mcap::records::Record;
+use mcap::sans_io::{LinearReadEvent, LinearReader, LinearReaderOptions};
 use nalgebra::{Point3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use crate::diagnostics::Diagnostics;
 use crate::msgs::{self, PointCloud2, TFMessage, WrenchStamped};
 pub use pointcloud::LabeledPoints;
+pub use stamps::{StampGuard, StampLimits, StampVerdict};
 pub use tf::TfBuffer;
+
+/// Bounds on what the input stage accepts (issue 27). Every size read from input is checked
+/// against the data actually present and against these caps before anything is allocated, so a
+/// damaged bag or DDS sample gives a one-line error or warning, never an allocation abort; values
+/// no real robot or camera produces are warned about, counted and dropped.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct InputLimits {
+    /// Largest MCAP record, and largest chunk compressed or decompressed \[bytes\]. A larger
+    /// declared size is damage: the bag is read up to it (as a truncated one). 128 MiB holds a
+    /// 4-million-point cloud.
+    pub max_record_bytes: usize,
+    /// Most points (`width x height`) in one PointCloud2; a larger cloud is skipped.
+    pub max_cloud_points: u64,
+    /// Points farther than this from the origin of the cloud's frame are skipped and counted \[m\]
+    /// (depth cameras see a few metres; 1e30 is a corrupted float, not a point).
+    pub max_range_m: f64,
+    /// Largest plausible applied force \[N\]; a manipulator pushing furniture stays far below.
+    pub max_force_n: f64,
+    /// Largest plausible applied torque \[N m\].
+    pub max_torque_nm: f64,
+    /// A header stamp more than this far ahead of its topic's clock waits for the next message to
+    /// confirm it (a gap) or refute it (an outlier, dropped) \[s\] ([`stamps`]).
+    pub stamp_jump_s: f64,
+    /// This many consecutive messages behind a topic's clock, rising among themselves, reset it
+    /// (a restarted publisher) instead of being dropped one by one.
+    pub stamp_reset_messages: u32,
+}
+
+impl Default for InputLimits {
+    fn default() -> Self {
+        InputLimits {
+            max_record_bytes: 128 << 20,
+            max_cloud_points: 4_000_000,
+            max_range_m: 1000.0,
+            max_force_n: 2000.0,
+            max_torque_nm: 500.0,
+            stamp_jump_s: 1.0,
+            stamp_reset_messages: 10,
+        }
+    }
+}
+
+impl InputLimits {
+    /// The stamp checks' part of the limits.
+    pub fn stamps(&self) -> StampLimits {
+        StampLimits { jump_s: self.stamp_jump_s, reset_messages: self.stamp_reset_messages }
+    }
+}
 
 /// A bag that cannot be used at all (exit code 3).
 #[derive(Debug, thiserror::Error)]
@@ -87,106 +138,202 @@ pub struct Bag {
     pub ground_truth: Option<GroundTruth>,
 }
 
-/// Read every message and the `bom_ground_truth` metadata of an MCAP bag.
-///
-/// A truncated bag is not an error: the messages before the damage are kept and the truncation
-/// is reported through `diag`. Messages are sorted by log time (chunks may interleave).
+/// Read every message and the `bom_ground_truth` metadata of an MCAP bag, with the default
+/// [`InputLimits`]; see [`read_bag_with`].
 ///
 /// # Errors
 /// [`InputError`] when the file cannot be read, is not MCAP, or has invalid ground truth JSON.
 pub fn read_bag(path: &Path, diag: &mut Diagnostics) -> Result<Bag, InputError> {
-    let buf = std::fs::read(path).map_err(|e| InputError::Unreadable { path: path.into(), why: e.to_string() })?;
-    let src = path.display().to_string();
-    let reader = LinearReader::new_with_options(&buf, Options::IgnoreEndMagic.into())
-        .map_err(|e| InputError::NotMcap { path: path.into(), why: e.to_string() })?;
-    let mut schemas: HashMap<u16, String> = HashMap::new();
-    let mut channels: HashMap<u16, (String, u16, String)> = HashMap::new();
-    let mut messages = Vec::new();
-    let mut ground_truth = None;
-    let mut records_ok = 0usize;
+    read_bag_with(path, &InputLimits::default(), diag)
+}
 
-    fn handle(
-        rec: Record<'_>,
-        schemas: &mut HashMap<u16, String>,
-        channels: &mut HashMap<u16, (String, u16, String)>,
-        messages: &mut Vec<BagMessage>,
-        gt: &mut Option<String>,
-    ) -> Result<(), String> {
+/// Read every message and the `bom_ground_truth` metadata of an MCAP bag.
+///
+/// A truncated or damaged bag is not an error: the messages before the damage are kept and the
+/// damage is reported through `diag`. Messages are sorted by log time (chunks may interleave).
+/// Memory is bounded by the file's size times [`MAX_INFLATION`] plus a few times
+/// `limits.max_record_bytes`, whatever sizes the file declares ([`read_mcap`]).
+///
+/// # Errors
+/// [`InputError`] when the file cannot be read, is not MCAP, or has invalid ground truth JSON.
+pub fn read_bag_with(path: &Path, limits: &InputLimits, diag: &mut Diagnostics) -> Result<Bag, InputError> {
+    let buf = std::fs::read(path).map_err(|e| InputError::Unreadable { path: path.into(), why: e.to_string() })?;
+    let read = read_mcap(&buf, &path.display().to_string(), limits, diag)
+        .map_err(|why| InputError::NotMcap { path: path.into(), why })?;
+    let ground_truth = match read.ground_truth_json {
+        Some(json) => Some(
+            serde_json::from_str(&json).map_err(|e| InputError::GroundTruth { path: path.into(), why: e.to_string() })?,
+        ),
+        None => None,
+    };
+    Ok(Bag { path: path.into(), messages: read.messages, ground_truth })
+}
+
+/// What [`read_mcap`] found in an MCAP byte stream.
+#[derive(Debug, Clone, Default)]
+pub struct McapContents {
+    /// Messages in log-time order.
+    pub messages: Vec<BagMessage>,
+    /// The `json` key of the `bom_ground_truth` metadata record, unparsed.
+    pub ground_truth_json: Option<String>,
+}
+
+/// Decode the records of an MCAP file held in memory (chunks decompressed, each chunk's CRC
+/// checked before its records are used).
+///
+/// Built on the `mcap` crate's sans-io [`LinearReader`] with `record_length_limit` set to
+/// `limits.max_record_bytes`: the crate's whole-chunk readers trust a chunk's declared
+/// uncompressed size and record lengths and allocate them (3e13 bytes in a damaged bag: an
+/// abort, not an error). Here no declared size is allocated beyond what the file holds or the
+/// limit, and the messages kept never exceed [`MAX_INFLATION`] times the file's size (or the
+/// limit). A damaged chunk (bad CRC, bad compression, a record overrunning it) is skipped whole
+/// with a warning and reading goes on with the next one; damage to the file's record framing
+/// ends the reading, keeping what came before (a truncated bag). Warnings go through `diag`
+/// under `src`, one line each.
+///
+/// # Errors
+/// A one-line reason when not a single record could be read (not an MCAP file).
+pub fn read_mcap(buf: &[u8], src: &str, limits: &InputLimits, diag: &mut Diagnostics) -> Result<McapContents, String> {
+    let limit = limits.max_record_bytes.max(1);
+    let mut reader = LinearReader::new_with_options(
+        LinearReaderOptions::default().with_skip_end_magic(true).with_emit_chunks(true).with_record_length_limit(limit),
+    );
+    let mut state = McapState::default();
+    let budget = buf.len().saturating_mul(MAX_INFLATION).max(limit);
+    let mut records_ok = 0usize;
+    let mut rest = buf;
+    let mut trouble: Option<String> = None;
+    while let Some(event) = reader.next_event() {
+        match event {
+            Ok(LinearReadEvent::ReadRequest(need)) => feed(&mut reader, &mut rest, need),
+            Ok(LinearReadEvent::Record { data, opcode }) if opcode == mcap::records::op::CHUNK => {
+                records_ok += 1;
+                match read_chunk(data, limit) {
+                    Ok(records) => {
+                        for rec in records {
+                            if let Err(e) = state.handle(rec) {
+                                diag.warn(src, "invalid record", &e);
+                            }
+                        }
+                    }
+                    Err(why) => diag.warn(src, "damaged chunk", &format!("{why}; the chunk's records skipped")),
+                }
+                if state.bytes > budget {
+                    trouble = Some(format!("messages inflate to more than {MAX_INFLATION} times the file's {} bytes", buf.len()));
+                    break;
+                }
+            }
+            Ok(LinearReadEvent::Record { data, opcode }) => match mcap::parse_record(opcode, data) {
+                Ok(rec) => {
+                    records_ok += 1;
+                    if let Err(e) = state.handle(rec) {
+                        diag.warn(src, "invalid record", &e);
+                    }
+                }
+                Err(e) => {
+                    trouble = Some(format!("record (opcode 0x{opcode:02x}): {e}"));
+                    break;
+                }
+            },
+            Err(e) => {
+                trouble = Some(e.to_string());
+                break;
+            }
+        }
+    }
+    let mut out = state.out;
+    if let Some(why) = trouble {
+        if records_ok == 0 {
+            return Err(why);
+        }
+        diag.warn(src, "truncated bag", &format!("{why}; using the {} messages before the damage", out.messages.len()));
+    } else if records_ok == 0 {
+        return Err("no MCAP record".into());
+    }
+    out.messages.sort_by_key(|m| m.log_time);
+    Ok(out)
+}
+
+/// Hand a sans-io reader at most `need` bytes of `rest`: never more than the file still holds,
+/// so a declared length is not an allocation.
+fn feed(reader: &mut LinearReader, rest: &mut &[u8], need: usize) {
+    let n = need.min(rest.len());
+    reader.insert(n).copy_from_slice(&rest[..n]);
+    reader.notify_read(n);
+    *rest = &rest[n..];
+}
+
+/// Decode one chunk record's body in a reader of its own, CRC checked before any record is used
+/// and every length bounded by `limit`: its records, when the whole chunk reads.
+fn read_chunk(body: &[u8], limit: usize) -> Result<Vec<Record<'static>>, String> {
+    let mut reader = LinearReader::new_with_options(
+        LinearReaderOptions::default()
+            .with_skip_start_magic(true)
+            .with_skip_end_magic(true)
+            .with_prevalidate_chunk_crcs(true)
+            .with_record_length_limit(limit),
+    );
+    let mut framed = Vec::with_capacity(9 + body.len());
+    framed.push(mcap::records::op::CHUNK);
+    framed.extend_from_slice(&(body.len() as u64).to_le_bytes());
+    framed.extend_from_slice(body);
+    let mut rest = &framed[..];
+    let mut records = Vec::new();
+    while let Some(event) = reader.next_event() {
+        match event.map_err(|e| e.to_string())? {
+            LinearReadEvent::ReadRequest(need) => feed(&mut reader, &mut rest, need),
+            LinearReadEvent::Record { data, opcode } => {
+                let rec = mcap::parse_record(opcode, data).map_err(|e| format!("record (opcode 0x{opcode:02x}): {e}"))?;
+                records.push(rec.into_owned());
+            }
+        }
+    }
+    Ok(records)
+}
+
+/// Schemas and channels met so far, and what was read.
+#[derive(Default)]
+struct McapState {
+    schemas: HashMap<u16, String>,
+    channels: HashMap<u16, (String, u16, String)>,
+    out: McapContents,
+    /// Message bytes kept so far.
+    bytes: usize,
+}
+
+/// Most message bytes kept per byte of file: sensor data compresses a few times; a bag whose
+/// chunks inflate beyond this is a decompression bomb or damage, not a recording.
+pub const MAX_INFLATION: usize = 64;
+
+impl McapState {
+    fn handle(&mut self, rec: Record<'_>) -> Result<(), String> {
         match rec {
             Record::Schema { header, .. } => {
-                schemas.insert(header.id, header.name);
+                self.schemas.insert(header.id, header.name);
             }
             Record::Channel(c) => {
-                channels.insert(c.id, (c.topic, c.schema_id, c.message_encoding));
+                self.channels.insert(c.id, (c.topic, c.schema_id, c.message_encoding));
             }
             Record::Message { header, data } => {
                 let (topic, schema_id, encoding) =
-                    channels.get(&header.channel_id).ok_or(format!("message on unknown channel {}", header.channel_id))?;
-                messages.push(BagMessage {
+                    self.channels.get(&header.channel_id).ok_or(format!("message on unknown channel {}", header.channel_id))?;
+                self.bytes += data.len();
+                self.out.messages.push(BagMessage {
                     topic: topic.clone(),
-                    schema: schemas.get(schema_id).cloned().unwrap_or_default(),
+                    schema: self.schemas.get(schema_id).cloned().unwrap_or_default(),
                     encoding: encoding.clone(),
                     log_time: header.log_time,
                     data: data.into_owned(),
                 });
             }
             Record::Metadata(m) if m.name == "bom_ground_truth" => {
-                *gt = Some(m.metadata.get("json").cloned().ok_or("no key 'json'")?);
+                self.out.ground_truth_json =
+                    Some(m.metadata.get("json").cloned().ok_or("metadata 'bom_ground_truth': no key 'json'")?);
             }
             _ => {}
         }
         Ok(())
     }
-
-    let mut gt_json = None;
-    let mut trouble: Option<String> = None;
-    'outer: for rec in reader {
-        let rec = match rec {
-            Ok(r) => r,
-            Err(e) => {
-                trouble = Some(e.to_string());
-                break;
-            }
-        };
-        records_ok += 1;
-        if let Record::Chunk { header, data } = rec {
-            let chunk = match ChunkReader::new(header, &data) {
-                Ok(c) => c,
-                Err(e) => {
-                    trouble = Some(format!("bad chunk: {e}"));
-                    break;
-                }
-            };
-            for r in chunk {
-                match r {
-                    Ok(r) => {
-                        if let Err(e) = handle(r, &mut schemas, &mut channels, &mut messages, &mut gt_json) {
-                            diag.warn(&src, "invalid record", &e);
-                        }
-                    }
-                    Err(e) => {
-                        trouble = Some(format!("bad chunk: {e}"));
-                        break 'outer;
-                    }
-                }
-            }
-        } else if let Err(e) = handle(rec, &mut schemas, &mut channels, &mut messages, &mut gt_json) {
-            diag.warn(&src, "invalid record", &e);
-        }
-    }
-    if let Some(why) = trouble {
-        if records_ok == 0 {
-            return Err(InputError::NotMcap { path: path.into(), why });
-        }
-        diag.warn(&src, "truncated bag", &format!("{why}; using the {} messages before the damage", messages.len()));
-    }
-    if let Some(json) = gt_json {
-        let gt: GroundTruth =
-            serde_json::from_str(&json).map_err(|e| InputError::GroundTruth { path: path.into(), why: e.to_string() })?;
-        ground_truth = Some(gt);
-    }
-    messages.sort_by_key(|m| m.log_time);
-    Ok(Bag { path: path.into(), messages, ground_truth })
 }
 
 /// Topic names and the fixed frame that the input stage listens to (contract section 1).
@@ -256,13 +403,41 @@ fn decode_or_warn<T: serde::de::DeserializeOwned>(m: &BagMessage, diag: &mut Dia
     }
 }
 
+/// Decode the messages of bags into a [`Recording`] in `fixed_frame`, with the default
+/// [`InputLimits`]; see [`decode_recording_with`].
+pub fn decode_recording(bags: &[Bag], topics: &Topics, fixed_frame: &str, diag: &mut Diagnostics) -> Recording {
+    decode_recording_with(bags, topics, fixed_frame, &InputLimits::default(), diag)
+}
+
+/// A cloud or a wrench on its way through a topic's [`StampGuard`].
+enum Timed {
+    Cloud(CloudFrame),
+    Wrench(WrenchSample),
+}
+
+impl Recording {
+    fn push(&mut self, item: Timed) {
+        match item {
+            Timed::Cloud(c) => self.clouds.push(c),
+            Timed::Wrench(w) => self.wrenches.push(w),
+        }
+    }
+}
+
 /// Decode the messages of bags into a [`Recording`] in `fixed_frame`.
 ///
 /// All `/tf` and `/tf_static` messages are buffered first, so a cloud can use a transform
 /// recorded just after it (as a tf2 message filter would wait for it). Clouds that cannot be
-/// decoded or transformed, wrenches with non-finite values or unknown frames, and messages whose
-/// header stamp goes backwards on their topic are reported through `diag` and skipped.
-pub fn decode_recording(bags: &[Bag], topics: &Topics, fixed_frame: &str, diag: &mut Diagnostics) -> Recording {
+/// decoded or transformed, wrenches that are not finite or not plausible (`limits`) or in unknown
+/// frames, and messages whose header stamp goes backwards or jumps ahead alone on their topic
+/// ([`stamps`]; each bag is a stream of its own) are reported through `diag` and skipped.
+pub fn decode_recording_with(
+    bags: &[Bag],
+    topics: &Topics,
+    fixed_frame: &str,
+    limits: &InputLimits,
+    diag: &mut Diagnostics,
+) -> Recording {
     let mut tf = TfBuffer::new();
     for bag in bags {
         for m in &bag.messages {
@@ -277,23 +452,28 @@ pub fn decode_recording(bags: &[Bag], topics: &Topics, fixed_frame: &str, diag: 
         }
     }
     let mut rec = Recording::default();
-    let mut last_stamp: HashMap<String, f64> = HashMap::new();
     for bag in bags {
+        let mut guards: HashMap<String, StampGuard<Timed>> = HashMap::new();
         for m in &bag.messages {
-            if m.topic == topics.points {
+            let item = if m.topic == topics.points {
                 let Some(cloud) = decode_or_warn::<PointCloud2>(m, diag) else { continue };
-                if let Some(c) = cloud_in_fixed_frame(&m.topic, &cloud, &tf, fixed_frame, diag) {
-                    if check_monotonic(&mut last_stamp, &m.topic, c.stamp, diag) {
-                        rec.clouds.push(c);
-                    }
-                }
+                let Some(c) = cloud_in_fixed_frame(&m.topic, &cloud, &tf, fixed_frame, limits, diag) else { continue };
+                (c.stamp, Timed::Cloud(c))
             } else if m.topic == topics.wrench {
                 let Some(w) = decode_or_warn::<WrenchStamped>(m, diag) else { continue };
-                if let Some(w) = wrench_in_fixed_frame(&m.topic, &w, &tf, fixed_frame, diag) {
-                    if check_monotonic(&mut last_stamp, &m.topic, w.stamp, diag) {
-                        rec.wrenches.push(w);
-                    }
-                }
+                let Some(w) = wrench_in_fixed_frame(&m.topic, &w, &tf, fixed_frame, limits, diag) else { continue };
+                (w.stamp, Timed::Wrench(w))
+            } else {
+                continue;
+            };
+            let guard = guards.entry(m.topic.clone()).or_insert_with(|| StampGuard::new(limits.stamps()));
+            for (_, item) in guard.push(&m.topic, item.0, item.1, diag).0 {
+                rec.push(item);
+            }
+        }
+        for guard in guards.values_mut() {
+            if let Some((_, item)) = guard.flush() {
+                rec.push(item);
             }
         }
     }
@@ -303,29 +483,11 @@ pub fn decode_recording(bags: &[Bag], topics: &Topics, fixed_frame: &str, diag: 
     rec
 }
 
-/// Whether `stamp` is not earlier than the previous header stamp on `topic` (then it becomes the
-/// previous one); a stamp going backwards is reported and the message is to be skipped.
-pub fn check_monotonic(last: &mut HashMap<String, f64>, topic: &str, stamp: f64, diag: &mut Diagnostics) -> bool {
-    match last.get_mut(topic) {
-        Some(prev) if stamp < *prev => {
-            diag.warn(topic, "time went backwards", &format!("header.stamp {stamp:.6} s after {prev:.6} s; message skipped"));
-            false
-        }
-        Some(prev) => {
-            *prev = stamp;
-            true
-        }
-        None => {
-            last.insert(topic.to_string(), stamp);
-            true
-        }
-    }
-}
-
-/// Decode the labelled points of a cloud (in its own frame), reporting a malformed cloud (then
-/// `None`), NaN/Inf points and non-integer labels (those points are skipped).
-pub fn decode_cloud(topic: &str, cloud: &PointCloud2, diag: &mut Diagnostics) -> Option<LabeledPoints> {
-    let lp = match pointcloud::decode(cloud) {
+/// Decode the labelled points of a cloud (in its own frame), reporting a malformed or oversized
+/// cloud (then `None`), NaN/Inf points, points beyond `limits.max_range_m` and non-integer labels
+/// (those points are skipped).
+pub fn decode_cloud(topic: &str, cloud: &PointCloud2, limits: &InputLimits, diag: &mut Diagnostics) -> Option<LabeledPoints> {
+    let lp = match pointcloud::decode(cloud, limits.max_cloud_points, limits.max_range_m) {
         Ok(lp) => lp,
         Err(e) => {
             diag.warn(topic, "malformed PointCloud2", &format!("{e}; cloud skipped"));
@@ -334,6 +496,13 @@ pub fn decode_cloud(topic: &str, cloud: &PointCloud2, diag: &mut Diagnostics) ->
     };
     if lp.nonfinite > 0 {
         diag.warn(topic, "non-finite points", &format!("{} NaN/Inf points skipped", lp.nonfinite));
+    }
+    if lp.out_of_range > 0 {
+        diag.warn(
+            topic,
+            "implausible points",
+            &format!("{} points farther than input.max_range_m = {} m from the cloud's frame skipped", lp.out_of_range, limits.max_range_m),
+        );
     }
     if lp.bad_labels > 0 {
         diag.warn(&format!("{topic}.label"), "non-integer label", &format!("{} points skipped", lp.bad_labels));
@@ -347,14 +516,28 @@ pub fn cloud_frame(lp: LabeledPoints, iso: &nalgebra::Isometry3<f64>, stamp: f64
     CloudFrame { stamp, points, labels: lp.labels }
 }
 
-/// Whether every force and torque component is finite; reports the wrench when not.
-pub fn wrench_is_finite(topic: &str, w: &WrenchStamped, diag: &mut Diagnostics) -> bool {
+/// Whether every force and torque component is finite and the force and torque are within
+/// `limits` (`max_force_n`, `max_torque_nm`); reports the wrench when not.
+pub fn wrench_is_plausible(topic: &str, w: &WrenchStamped, limits: &InputLimits, diag: &mut Diagnostics) -> bool {
     let (f, t) = (w.wrench.force, w.wrench.torque);
-    let ok = [f.x, f.y, f.z, t.x, t.y, t.z].iter().all(|x| x.is_finite());
-    if !ok {
+    if ![f.x, f.y, f.z, t.x, t.y, t.z].iter().all(|x| x.is_finite()) {
         diag.warn(&format!("{topic}.wrench"), "non-finite wrench", "NaN or Inf in force/torque; message skipped");
+        return false;
     }
-    ok
+    let norm = |v: crate::msgs::Vector3| (v.x * v.x + v.y * v.y + v.z * v.z).sqrt();
+    let (fn_, tn) = (norm(f), norm(t));
+    if !(fn_ <= limits.max_force_n && tn <= limits.max_torque_nm) {
+        diag.warn(
+            &format!("{topic}.wrench"),
+            "implausible wrench",
+            &format!(
+                "|force| {fn_:.3e} N, |torque| {tn:.3e} N m beyond input.max_force_n = {} N / max_torque_nm = {} N m; message skipped",
+                limits.max_force_n, limits.max_torque_nm
+            ),
+        );
+        return false;
+    }
+    true
 }
 
 /// A wrench in the fixed frame: `iso` maps the wrench's frame into it; force and torque rotated,
@@ -375,9 +558,10 @@ pub fn cloud_in_fixed_frame(
     cloud: &PointCloud2,
     tf: &TfBuffer,
     fixed_frame: &str,
+    limits: &InputLimits,
     diag: &mut Diagnostics,
 ) -> Option<CloudFrame> {
-    let lp = decode_cloud(topic, cloud, diag)?;
+    let lp = decode_cloud(topic, cloud, limits, diag)?;
     let iso = match tf.lookup(fixed_frame, &cloud.header.frame_id, cloud.header.stamp) {
         Ok(iso) => iso,
         Err(e) => {
@@ -395,9 +579,10 @@ pub fn wrench_in_fixed_frame(
     w: &WrenchStamped,
     tf: &TfBuffer,
     fixed_frame: &str,
+    limits: &InputLimits,
     diag: &mut Diagnostics,
 ) -> Option<WrenchSample> {
-    if !wrench_is_finite(topic, w, diag) {
+    if !wrench_is_plausible(topic, w, limits, diag) {
         return None;
     }
     let iso = match tf.lookup(fixed_frame, &w.header.frame_id, w.header.stamp) {

@@ -17,6 +17,8 @@ pub struct LabeledPoints {
     pub nonfinite: usize,
     /// Points skipped because the label was not a non-negative integer (FLOAT32 labels only).
     pub bad_labels: usize,
+    /// Points skipped because they lie farther than the plausible range from the frame's origin.
+    pub out_of_range: usize,
 }
 
 /// Why a cloud could not be decoded; the whole cloud is then skipped.
@@ -32,6 +34,8 @@ pub enum CloudError {
     RowStepTooSmall { row_step: u32, width: u32, point_step: u32 },
     #[error("data is {actual} bytes, shorter than the declared {declared} (height {height} x row_step {row_step})")]
     DataTooShort { actual: usize, declared: u64, height: u32, row_step: u32 },
+    #[error("{points} points (width {width} x height {height}) exceed input.max_cloud_points = {max}")]
+    TooManyPoints { points: u64, width: u32, height: u32, max: u64 },
 }
 
 fn datatype_size(dt: u8) -> Option<u32> {
@@ -57,7 +61,8 @@ fn find(cloud: &PointCloud2, name: &'static str) -> Result<Field, CloudError> {
         datatype: f.datatype,
         why: "not a PointField datatype",
     })?;
-    if f.offset + size > cloud.point_step {
+    // In 64 bits: an offset near u32::MAX must not wrap past the check.
+    if f.offset as u64 + size as u64 > cloud.point_step as u64 {
         return Err(CloudError::FieldOverrun { name, offset: f.offset, size, point_step: cloud.point_step });
     }
     Ok(Field { offset: f.offset as usize, datatype: f.datatype })
@@ -89,13 +94,18 @@ fn read(p: &[u8], f: Field, big: bool) -> f64 {
     }
 }
 
-/// Decode the labelled points of a segmented cloud.
+/// Decode the labelled points of a segmented cloud: at most `max_points` points (`width x
+/// height`); points farther than `max_range_m` from the frame's origin are skipped and counted.
+///
+/// Every size is checked in 64-bit arithmetic against `data` before anything is allocated or
+/// sliced, so no field of a damaged cloud can make this panic or allocate beyond `max_points`.
 ///
 /// # Errors
 /// A [`CloudError`] when the cloud's layout is unusable: a missing `x`/`y`/`z`/`label` field, a
 /// coordinate that is not FLOAT32/FLOAT64, a label that is FLOAT64 (or not a PointField datatype), a
-/// field overrunning `point_step`, or `data` shorter than `height x row_step`.
-pub fn decode(cloud: &PointCloud2) -> Result<LabeledPoints, CloudError> {
+/// field overrunning `point_step`, `data` shorter than `height x row_step`, or more points than
+/// `max_points`.
+pub fn decode(cloud: &PointCloud2, max_points: u64, max_range_m: f64) -> Result<LabeledPoints, CloudError> {
     let xyz = [find(cloud, "x")?, find(cloud, "y")?, find(cloud, "z")?];
     for (f, name) in xyz.iter().zip(["x", "y", "z"]) {
         if f.datatype != PointField::FLOAT32 && f.datatype != PointField::FLOAT64 {
@@ -119,10 +129,16 @@ pub fn decode(cloud: &PointCloud2) -> Result<LabeledPoints, CloudError> {
     if (cloud.data.len() as u64) < declared {
         return Err(CloudError::DataTooShort { actual: cloud.data.len(), declared, height: h, row_step: cloud.row_step });
     }
+    let n_points = w as u64 * h as u64;
+    if n_points > max_points {
+        return Err(CloudError::TooManyPoints { points: n_points, width: w, height: h, max: max_points });
+    }
     let big = cloud.is_bigendian;
     let float_label = label.datatype == PointField::FLOAT32;
+    let max_r2 = max_range_m * max_range_m;
     let mut out = LabeledPoints::default();
-    out.points.reserve((w * h) as usize);
+    // point_step >= 1 here (every field fits in it), so the points are backed by data bytes.
+    out.points.reserve(n_points as usize);
     for r in 0..h as usize {
         let row = &cloud.data[r * cloud.row_step as usize..];
         for c in 0..w as usize {
@@ -138,6 +154,10 @@ pub fn decode(cloud: &PointCloud2) -> Result<LabeledPoints, CloudError> {
             let x = [read(p, xyz[0], big), read(p, xyz[1], big), read(p, xyz[2], big)];
             if !x.iter().all(|v| v.is_finite()) {
                 out.nonfinite += 1;
+                continue;
+            }
+            if !(x[0] * x[0] + x[1] * x[1] + x[2] * x[2] <= max_r2) {
+                out.out_of_range += 1;
                 continue;
             }
             out.points.push(x);
@@ -215,7 +235,7 @@ mod tests {
             data,
             is_dense: false,
         };
-        let d = decode(&cloud).unwrap();
+        let d = decode(&cloud, u64::MAX, f64::INFINITY).unwrap();
         assert_eq!(d.points, vec![[1.0, 2.0, 3.0], [7.0, 8.0, 9.0]]);
         assert_eq!(d.labels, vec![2, 3]);
         assert_eq!(d.nonfinite, 1);
@@ -227,17 +247,31 @@ mod tests {
         c.fields[3].datatype = PointField::FLOAT32;
         c.data[12..16].copy_from_slice(&4.0f32.to_le_bytes());
         c.data[28..32].copy_from_slice(&1.5f32.to_le_bytes());
-        let d = decode(&c).unwrap();
+        let d = decode(&c, u64::MAX, f64::INFINITY).unwrap();
         assert_eq!((d.labels.clone(), d.bad_labels), (vec![4], 1));
 
         let mut short = c.clone();
         short.data.truncate(20);
-        assert!(matches!(decode(&short), Err(CloudError::DataTooShort { .. })));
+        assert!(matches!(decode(&short, u64::MAX, f64::INFINITY), Err(CloudError::DataTooShort { .. })));
         let mut f64_label = c.clone();
         f64_label.fields[3].datatype = PointField::FLOAT64;
-        assert!(matches!(decode(&f64_label), Err(CloudError::UnsupportedDatatype { name: "label", .. })));
-        let mut no_label = c;
+        assert!(matches!(decode(&f64_label, u64::MAX, f64::INFINITY), Err(CloudError::UnsupportedDatatype { name: "label", .. })));
+        let mut no_label = c.clone();
         no_label.fields.pop();
-        assert_eq!(decode(&no_label).unwrap_err(), CloudError::MissingField("label"));
+        assert_eq!(decode(&no_label, u64::MAX, f64::INFINITY).unwrap_err(), CloudError::MissingField("label"));
+
+        // Sizes from a damaged header: checked in 64 bits, before any allocation or slicing.
+        let mut wrapped = c.clone();
+        wrapped.fields[3].offset = u32::MAX - 1; // offset + 4 wraps to 2 in 32 bits
+        assert!(matches!(decode(&wrapped, u64::MAX, f64::INFINITY), Err(CloudError::FieldOverrun { name: "label", .. })));
+        let mut huge = c.clone();
+        (huge.width, huge.height, huge.row_step) = (u32::MAX, u32::MAX, u32::MAX);
+        assert!(matches!(decode(&huge, u64::MAX, f64::INFINITY), Err(CloudError::RowStepTooSmall { .. })));
+        let mut zero_step = c.clone();
+        (zero_step.width, zero_step.point_step, zero_step.row_step) = (u32::MAX, 0, 0);
+        assert!(matches!(decode(&zero_step, u64::MAX, f64::INFINITY), Err(CloudError::FieldOverrun { .. })));
+        assert!(matches!(decode(&c, 1, f64::INFINITY), Err(CloudError::TooManyPoints { points: 2, .. })));
+        let far = decode(&c, u64::MAX, 2.0).unwrap();
+        assert_eq!((far.labels, far.out_of_range), (vec![], 1));
     }
 }

@@ -110,14 +110,14 @@ pub fn replay(bags: &[PathBuf], cfg: &Config) -> Result<Run, ReplayError> {
     let pb = progress("reading bags");
     let mut read = Vec::new();
     for path in bags {
-        read.push(input::read_bag(path, &mut diag)?);
+        read.push(input::read_bag_with(path, &cfg.input, &mut diag)?);
     }
     let ground_truth = read.iter().find_map(|b| b.ground_truth.clone());
     timing.read = t0.elapsed();
 
     pb.set_message("decoding messages");
     let t = Instant::now();
-    let recording = input::decode_recording(&read, &cfg.topics, &cfg.fixed_frame, &mut diag);
+    let recording = input::decode_recording_with(&read, &cfg.topics, &cfg.fixed_frame, &cfg.input, &mut diag);
     drop(read);
     timing.decode = t.elapsed();
     if recording.clouds.is_empty() {

@@ -27,7 +27,7 @@ use crate::inference::svi;
 use crate::criticism::Criticism;
 use crate::model::likelihood::Evidence;
 use crate::input::tf::TfBuffer;
-use crate::input::{self, CloudFrame, LabeledPoints, WrenchSample};
+use crate::input::{self, CloudFrame, LabeledPoints, StampGuard, WrenchSample};
 use crate::msgs::{Header, PointCloud2, TFMessage, WrenchStamped};
 use crate::perception::{self, PartGeometry, PartObservation, PartTracks, Perception};
 use crate::windows::{self, Window};
@@ -57,6 +57,38 @@ pub struct Job {
     /// Every window closed so far, in time order.
     pub windows: Vec<Window>,
     pub wrenches: Vec<WrenchSample>,
+}
+
+/// The newest stamp seen on some topics \[s\]; a jump of more than `jump_s` ahead moves it only
+/// once a second stamp confirms it, so that one stamp far in the future cannot make every message
+/// waiting for its transform look hopelessly late.
+#[derive(Debug, Clone, Copy)]
+struct Clock {
+    now: f64,
+    jump: Option<f64>,
+}
+
+impl Clock {
+    const START: Clock = Clock { now: f64::NEG_INFINITY, jump: None };
+
+    fn advance(&mut self, t: f64, jump_s: f64) {
+        if !(t > self.now) {
+            return;
+        }
+        let confirms = self.jump.is_some_and(|c| t >= c && t - c <= jump_s);
+        if self.now == f64::NEG_INFINITY || t - self.now <= jump_s || confirms {
+            self.now = t;
+            self.jump = None;
+        } else {
+            self.jump = Some(t);
+        }
+    }
+}
+
+/// A cloud or wrench in the fixed frame, on its way through its topic's [`StampGuard`].
+enum Ready {
+    Cloud(CloudFrame),
+    Wrench(WrenchSample),
 }
 
 enum Held {
@@ -103,11 +135,13 @@ pub struct Online {
     force_above: bool,
     saw_wrench: bool,
     held: VecDeque<Held>,
-    last_stamp: HashMap<String, f64>,
+    /// Each input topic's clock (a stamp far ahead waits for the next message; see
+    /// [`input::stamps`]).
+    stamps: HashMap<String, StampGuard<Ready>>,
     /// Newest header stamp on any input topic \[s\].
-    clock: f64,
+    clock: Clock,
     /// Newest stamp of a dynamic transform \[s\].
-    tf_clock: f64,
+    tf_clock: Clock,
     first_cloud: Option<f64>,
     last_cloud_stamp: f64,
     /// Data before this stamp lie in no window, closed or open \[s\] (a quiet stretch).
@@ -116,6 +150,8 @@ pub struct Online {
     quiet_checked: f64,
     /// Stream time of the last search for closed windows \[s\].
     close_checked: f64,
+    /// Windows forgotten under `windows.node_max_windows_per_part`.
+    forgotten: usize,
     /// Bad input, counted (contract: never silently dropped).
     pub diag: Diagnostics,
 }
@@ -134,14 +170,15 @@ impl Online {
             force_above: false,
             saw_wrench: false,
             held: VecDeque::new(),
-            last_stamp: HashMap::new(),
-            clock: f64::NEG_INFINITY,
-            tf_clock: f64::NEG_INFINITY,
+            stamps: HashMap::new(),
+            clock: Clock::START,
+            tf_clock: Clock::START,
             first_cloud: None,
             last_cloud_stamp: f64::NEG_INFINITY,
             quiet_until: f64::NEG_INFINITY,
             quiet_checked: f64::NEG_INFINITY,
             close_checked: f64::NEG_INFINITY,
+            forgotten: 0,
             diag: Diagnostics::default(),
         }
     }
@@ -151,9 +188,20 @@ impl Online {
         if self.saw_wrench { "dynamic" } else { "kinematic" }
     }
 
-    /// Windows closed so far.
+    /// Windows closed so far whose evidence is kept (at most `windows.node_max_windows_per_part`
+    /// per pushed part), in time order.
     pub fn windows(&self) -> &[Window] {
         &self.closed
+    }
+
+    /// Windows closed so far, kept or forgotten.
+    pub fn windows_closed(&self) -> usize {
+        self.closed.len() + self.forgotten
+    }
+
+    /// Windows forgotten under `windows.node_max_windows_per_part`.
+    pub fn windows_forgotten(&self) -> usize {
+        self.forgotten
     }
 
     /// The part tracks so far (in the fixed frame).
@@ -174,8 +222,9 @@ impl Online {
         }
         if let Some(t) = msg.transforms.iter().map(|t| t.header.stamp.seconds()).reduce(f64::max) {
             if !is_static {
-                self.clock = self.clock.max(t);
-                self.tf_clock = self.tf_clock.max(t);
+                let jump = self.cfg.input.stamp_jump_s;
+                self.clock.advance(t, jump);
+                self.tf_clock.advance(t, jump);
             }
         }
         self.release()
@@ -185,18 +234,18 @@ impl Online {
     /// ready (usually this one; none while it waits for its transform): its stamp \[s\] and the
     /// parts observed.
     pub fn cloud(&mut self, topic: &str, cloud: &PointCloud2) -> Vec<(f64, Vec<(u32, PartObservation)>)> {
-        let Some(points) = input::decode_cloud(topic, cloud, &mut self.diag) else { return Vec::new() };
-        self.clock = self.clock.max(cloud.header.stamp.seconds());
+        let Some(points) = input::decode_cloud(topic, cloud, &self.cfg.input, &mut self.diag) else { return Vec::new() };
+        self.clock.advance(cloud.header.stamp.seconds(), self.cfg.input.stamp_jump_s);
         self.held.push_back(Held::Cloud { topic: topic.into(), header: cloud.header.clone(), points });
         self.release()
     }
 
     /// One `geometry_msgs/WrenchStamped`. Returns the perception results of clouds it released.
     pub fn wrench(&mut self, topic: &str, msg: &WrenchStamped) -> Vec<(f64, Vec<(u32, PartObservation)>)> {
-        if !input::wrench_is_finite(topic, msg, &mut self.diag) {
+        if !input::wrench_is_plausible(topic, msg, &self.cfg.input, &mut self.diag) {
             return Vec::new();
         }
-        self.clock = self.clock.max(msg.header.stamp.seconds());
+        self.clock.advance(msg.header.stamp.seconds(), self.cfg.input.stamp_jump_s);
         self.held.push_back(Held::Wrench { topic: topic.into(), msg: msg.clone() });
         self.release()
     }
@@ -217,23 +266,24 @@ impl Online {
             match self.tf.lookup(&self.cfg.fixed_frame, &frame, stamp) {
                 Ok(iso) => {
                     let h = self.held.pop_front().expect("non-empty");
-                    match h {
+                    let (topic, t, ready) = match h {
                         Held::Cloud { topic, header, points } => {
                             let t = header.stamp.seconds();
-                            if input::check_monotonic(&mut self.last_stamp, &topic, t, &mut self.diag) {
-                                let c = input::cloud_frame(points, &iso, t);
-                                out.push((t, self.observe(c)));
-                            }
+                            (topic, t, Ready::Cloud(input::cloud_frame(points, &iso, t)))
                         }
                         Held::Wrench { topic, msg } => {
                             let t = msg.header.stamp.seconds();
-                            if input::check_monotonic(&mut self.last_stamp, &topic, t, &mut self.diag) {
-                                self.add_wrench(input::wrench_sample(&msg, &iso));
-                            }
+                            (topic, t, Ready::Wrench(input::wrench_sample(&msg, &iso)))
                         }
+                    };
+                    let limits = self.cfg.input.stamps();
+                    let guard = self.stamps.entry(topic.clone()).or_insert_with(|| StampGuard::new(limits));
+                    let (released, _) = guard.push(&topic, t, ready, &mut self.diag);
+                    for (_, r) in released {
+                        self.take(r, &mut out);
                     }
                 }
-                Err(e) if self.tf_clock - stamp.seconds() > TF_WAIT_S || self.clock - stamp.seconds() > TF_WAIT_MAX_S => {
+                Err(e) if self.tf_clock.now - stamp.seconds() > TF_WAIT_S || self.clock.now - stamp.seconds() > TF_WAIT_MAX_S => {
                     let h = self.held.pop_front().expect("non-empty");
                     let what = if matches!(h, Held::Cloud { .. }) { "cloud" } else { "wrench" };
                     self.diag.warn(&format!("{}.header.frame_id", h.topic()), "unknown frame", &format!("{e}; {what} skipped"));
@@ -242,6 +292,17 @@ impl Online {
             }
         }
         out
+    }
+
+    /// Use a cloud or wrench whose stamp its topic's clock accepted.
+    fn take(&mut self, r: Ready, out: &mut Vec<(f64, Vec<(u32, PartObservation)>)>) {
+        match r {
+            Ready::Cloud(c) => {
+                let t = c.stamp;
+                out.push((t, self.observe(c)));
+            }
+            Ready::Wrench(w) => self.add_wrench(w),
+        }
     }
 
     fn observe(&mut self, cloud: CloudFrame) -> Vec<(u32, PartObservation)> {
@@ -337,9 +398,15 @@ impl Online {
     /// whole stream had no window at all, use it whole, as replay does. Returns how many closed.
     pub fn flush(&mut self) -> usize {
         // Release what still waits for a transform, if it can be.
-        self.clock = f64::INFINITY;
-        self.tf_clock = f64::INFINITY;
+        self.clock.now = f64::INFINITY;
+        self.tf_clock.now = f64::INFINITY;
         self.release();
+        // ... and what waits for its stamp to be confirmed (nothing came to refute it).
+        let held: Vec<Ready> = self.stamps.values_mut().filter_map(|g| g.flush()).map(|(_, r)| r).collect();
+        let mut out = Vec::new();
+        for r in held {
+            self.take(r, &mut out);
+        }
         let n = self.close(true);
         if self.closed.is_empty() {
             if let Some(first) = self.first_cloud {
@@ -366,9 +433,33 @@ impl Online {
         }
         let n = new.len();
         self.closed.extend(new);
+        self.forget_old_windows();
         self.perception.refine(&mut self.tracks);
         self.prune();
         n
+    }
+
+    /// Keep the most recent `windows.node_max_windows_per_part` windows of each pushed part (the
+    /// windows without a pushed part form one group); [`Online::prune`] then drops the evidence of
+    /// the others. The tail (data after the last window) is untouched.
+    fn forget_old_windows(&mut self) {
+        let max = self.cfg.windows.node_max_windows_per_part.max(1);
+        let mut seen: HashMap<Option<u32>, usize> = HashMap::new();
+        let mut keep = vec![true; self.closed.len()];
+        for (i, w) in self.closed.iter().enumerate().rev() {
+            let n = seen.entry(w.pushed_part).or_insert(0);
+            *n += 1;
+            keep[i] = *n <= max;
+        }
+        // The last window marks where the tail starts: always kept (it is the newest of its group).
+        let before = self.closed.len();
+        let mut k = keep.into_iter();
+        self.closed.retain(|_| k.next().unwrap_or(true));
+        let dropped = before - self.closed.len();
+        if dropped > 0 {
+            self.forgotten += dropped;
+            tracing::debug!("{dropped} old window(s) forgotten ({} so far; windows.node_max_windows_per_part = {max})", self.forgotten);
+        }
     }
 
     /// Once a second of stream time: when the data after the last closed window hold no window at
@@ -483,5 +574,31 @@ mod tests {
         assert!((w.start - (100.0 - wc.margin_before_s)).abs() < 0.01 && (w.end - (101.0 + wc.margin_after_s)).abs() < 0.01, "{w:?}");
         assert_eq!(w.pushed_part, Some(1));
         assert_eq!(on.diag.total(), 0);
+    }
+
+    /// Pushes every 5 s for a minute: the node keeps the evidence of the last
+    /// `node_max_windows_per_part` windows only, and counts the ones it forgot.
+    #[test]
+    fn old_windows_are_forgotten_and_counted() {
+        let cfg = Config::new();
+        let max = cfg.windows.node_max_windows_per_part;
+        let mut on = Online::new(&cfg);
+        let push = |t: f64| if t % 5.0 < 1.0 && t > 1.0 { 5.0 } else { 0.0 };
+        for k in 0..(61 * 200) {
+            let t = k as f64 / 200.0;
+            if k % 7 == 0 {
+                on.cloud("/segmented_points", &cloud(t));
+            }
+            on.wrench("/applied_wrench", &wrench(t, push(t)));
+            on.close_windows();
+        }
+        on.flush();
+        assert_eq!(on.windows_closed(), 12, "{:?}", on.windows());
+        assert_eq!((on.windows().len(), on.windows_forgotten()), (max, 12 - max));
+        // The kept windows are the last ones, and no evidence from before them is kept.
+        let first_kept = on.windows()[0].start;
+        assert!(first_kept > 60.0 - 5.0 * max as f64 - 1.0, "{first_kept}");
+        assert!(on.tracks[&1].iter().all(|o| o.stamp >= first_kept - 1.0), "old observations kept");
+        assert!(on.wrenches.iter().all(|w| w.stamp >= first_kept - 1.0), "old wrenches kept");
     }
 }

@@ -2,9 +2,11 @@
 """Interop test of `bom node` against a real rclpy (ROS 2 Jazzy, Fast DDS) node.
 
 1. Starts `bom node --params-file config/bom.yaml`.
-2. An rclpy node publishes three bad messages (a malformed PointCloud2, a WrenchStamped with NaN, a
-   cloud in an unknown frame), then plays a bag from bags/ in real time (the recorded CDR bytes,
-   on the recorded topics, paced by log time).
+2. An rclpy node publishes bad messages (a malformed PointCloud2, a WrenchStamped with NaN, a
+   cloud in an unknown frame; issue 27: a cloud whose label offset wraps a 32-bit bounds check, a
+   wrench of 1e30 N), then plays a bag from bags/ in real time (the recorded CDR bytes, on the
+   recorded topics, paced by log time), with one cloud stamped 10^6 s in the future in the middle:
+   the node must survive all of them, count each, and still agree with the replay.
 3. An rclpy subscriber receives /bom/object_model (bom_msgs/ObjectModel),
    /bom/predicted_part_poses (geometry_msgs/PoseArray) and /bom/model_criticism
    (bom_msgs/ModelCriticism).
@@ -64,7 +66,7 @@ def read_bag(path):
 
 
 def bad_messages(t):
-    """The three bad inputs of issue 5, stamped `t` (before the bag starts)."""
+    """The bad inputs of issues 5 and 27, stamped `t` (before the bag starts)."""
     fields = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1) for i, n in enumerate("xyz")]
     fields.append(PointField(name="label", offset=12, datatype=PointField.UINT32, count=1))
     malformed = PointCloud2(height=1, width=100, fields=fields, is_bigendian=False, point_step=16, row_step=1600, data=bytes(160), is_dense=True)
@@ -77,7 +79,28 @@ def bad_messages(t):
     unknown = PointCloud2(height=1, width=1, fields=fields, is_bigendian=False, point_step=16, row_step=16, data=bytes(16), is_dense=True)
     unknown.header.stamp = stamp(t)
     unknown.header.frame_id = "nowhere"
-    return malformed, nan, unknown
+    # Issue 27: offset + 4 wraps to 2 in 32 bits; the node must reject it, not slice past the data.
+    wrapped_fields = fields[:3] + [PointField(name="label", offset=2**32 - 2, datatype=PointField.UINT32, count=1)]
+    wrapped = PointCloud2(height=1, width=1, fields=wrapped_fields, is_bigendian=False, point_step=16, row_step=16, data=bytes(16), is_dense=True)
+    wrapped.header.stamp = stamp(t)
+    wrapped.header.frame_id = "world"
+    huge = WrenchStamped()
+    huge.header.stamp = stamp(t)
+    huge.header.frame_id = "world"
+    huge.wrench.force.x = 1e30
+    return malformed, nan, unknown, wrapped, huge
+
+
+def future_cloud(t):
+    """A valid cloud of part 1 stamped `t` (far in the future): one bad stamp must not poison the stream."""
+    fields = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1) for i, n in enumerate("xyz")]
+    fields.append(PointField(name="label", offset=12, datatype=PointField.UINT32, count=1))
+    import struct
+    data = b"".join(struct.pack("<fffI", 0.01 * i, 0.0, 0.5, 1) for i in range(20))
+    c = PointCloud2(height=1, width=20, fields=fields, is_bigendian=False, point_step=16, row_step=320, data=data, is_dense=True)
+    c.header.stamp = stamp(t)
+    c.header.frame_id = "world"
+    return c
 
 
 def main():
@@ -133,17 +156,22 @@ def main():
     messages = read_bag(args.bag)
     first = messages[0][0]
     bad_t = max(first * 1e-9 - 1.0, 0.0)
-    malformed, nan, unknown = bad_messages(bad_t)
+    malformed, nan, unknown, wrapped, huge = bad_messages(bad_t)
     pubs["/segmented_points"].publish(malformed)
     pubs["/applied_wrench"].publish(nan)
     pubs["/segmented_points"].publish(unknown)
+    pubs["/segmented_points"].publish(wrapped)
+    pubs["/applied_wrench"].publish(huge)
 
     start = time.monotonic() + 0.2
-    for log_time, topic, _schema, data in messages:
+    future_at = len(messages) // 3
+    for i, (log_time, topic, _schema, data) in enumerate(messages):
         delay = start + (log_time - first) * 1e-9 - time.monotonic()
         if delay > 0:
             time.sleep(delay)
         pubs[topic].publish(data)  # the recorded CDR bytes, as ros2 bag play sends them
+        if i == future_at:
+            pubs["/segmented_points"].publish(future_cloud(log_time * 1e-9 + 1e6))
     lag = time.monotonic() - (start + (messages[-1][0] - first) * 1e-9)
     print(f"played {len(messages)} messages of {args.bag} in real time (lag at the end {lag:.3f} s)")
     check(node_proc.poll() is None, "bom node still running after the bad input and the bag")
@@ -169,10 +197,14 @@ def main():
         "/segmented_points: malformed PointCloud2",
         "/applied_wrench.wrench: non-finite wrench",
         "/segmented_points.header.frame_id: unknown frame",
+        "/applied_wrench.wrench: implausible wrench",
+        "/segmented_points: stamp outlier",
     ):
         logged = any(key in line and "WARN" in line for line in node_log.splitlines())
         counted = any(line.strip().startswith(key + ": ") for line in node_log.splitlines())
         check(logged and counted, f"bad input '{key}' logged and counted")
+    check(any("offset 4294967294" in line and "WARN" in line for line in node_log.splitlines()),
+          "a label offset that wraps 32 bits is rejected as malformed (logged)")
 
     check(len(models) > 0, f"ObjectModel received ({len(models)})")
     if not models:

@@ -36,12 +36,18 @@ for c in "${CAPS[@]}"; do
   dev=${c%%:*}; pid=${c##*:}
   kill -INT "$pid" 2>/dev/null || true
   wait "$pid" 2>/dev/null || true
-  n=$(tcpdump -r "target/interop-$dev.pcap" -n 2>/dev/null | wc -l)
+  # An unreadable capture (tcpdump died, no file) proves nothing: that is a failure, not 0 packets.
+  if ! out=$(tcpdump -r "target/interop-$dev.pcap" -n 2>/dev/null); then
+    echo "FAIL  the capture on $dev could not be read (target/interop-$dev.pcap): loopback-only not shown"
+    status=1
+    continue
+  fi
+  n=$(printf '%s' "$out" | grep -c . || true)
   if [ "$n" = 0 ]; then
     echo "ok    no DDS packet of domain $ROS_DOMAIN_ID on $dev (loopback only)"
   else
     echo "FAIL  $n DDS packet(s) of domain $ROS_DOMAIN_ID left loopback on $dev"
-    tcpdump -r "target/interop-$dev.pcap" -n 2>/dev/null | head -5
+    printf '%s\n' "$out" | head -5
     status=1
   fi
 done

@@ -23,8 +23,8 @@ import rclpy
 from rclpy.executors import MultiThreadedExecutor
 
 from bom_msgs.msg import ObjectModel
-from rosutil import qos, stamp
-from geometry_msgs.msg import TransformStamped, WrenchStamped
+from rosutil import contact_messages, qos, stamp
+from geometry_msgs.msg import WrenchStamped
 from sensor_msgs.msg import PointCloud2, PointField
 from tf2_msgs.msg import TFMessage
 
@@ -121,18 +121,8 @@ def main():
     while k_cloud < len(frames):
         t_cloud, t_wrench = k_cloud / 30.0, k_wrench / 200.0
         if t_wrench <= t_cloud:
-            p, f = contact_at(t_wrench)
-            tf = TransformStamped()
-            tf.header.stamp = stamp(t_wrench)
-            tf.header.frame_id = "world"
-            tf.child_frame_id = "contact"
-            tf.transform.translation.x, tf.transform.translation.y, tf.transform.translation.z = map(float, p)
-            tf.transform.rotation.w = 1.0
-            pub_tf.publish(TFMessage(transforms=[tf]))
-            w = WrenchStamped()
-            w.header = tf.header
-            w.header.frame_id = "contact"
-            w.wrench.force.x, w.wrench.force.y, w.wrench.force.z = map(float, f)
+            tf, w = contact_messages(t_wrench, *contact_at(t_wrench))
+            pub_tf.publish(tf)
             due, k_wrench = t_wrench, k_wrench + 1
             msg = w
             pub = pub_wrench
