@@ -243,3 +243,28 @@ fn randomly_damaged_bags_never_crash_the_decoders() {
     // Most damage leaves a readable prefix: the decoders did see data.
     assert!(read > 300 && clouds > 10_000, "{read} copies readable, {clouds} clouds decoded");
 }
+
+/// Inputs on which a fuzz target once crashed (`tests/data/fuzz-crashes/`, named by target):
+/// through bom's reader and decoders they give an error or warnings, never a panic. The
+/// `mcap_bag` one: a 70-byte bag whose attachment record is shorter than its header, on which
+/// `mcap` 0.26's record parser slices past the end (bom no longer parses records it does not use).
+#[test]
+fn fuzz_crash_inputs_are_errors_not_panics() {
+    let mut n = 0;
+    for e in std::fs::read_dir("tests/data/fuzz-crashes").unwrap() {
+        let path = e.unwrap().path();
+        let name = path.file_name().unwrap().to_str().unwrap().to_string();
+        let bytes = std::fs::read(&path).unwrap();
+        assert!(name.starts_with("mcap_bag-"), "{name}: no runner for this target");
+        let cfg = bom::config::Config::new();
+        let mut diag = bom::diagnostics::Diagnostics::default();
+        if let Ok(c) = bom::input::read_mcap(&bytes, &name, &cfg.input, &mut diag) {
+            let bag = bom::input::Bag { path: path.clone(), messages: c.messages, ground_truth: None };
+            bom::input::decode_recording_with(&[bag], &cfg.topics, &cfg.fixed_frame, &cfg.input, &mut diag);
+        }
+        let (code, _, stderr) = bom(&["replay", path.to_str().unwrap()]);
+        assert!(code == 3 && !stderr.contains("panicked"), "{name}: exit {code}\n{stderr}");
+        n += 1;
+    }
+    assert!(n >= 1);
+}

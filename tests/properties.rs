@@ -184,6 +184,25 @@ proptest! {
     }
 }
 
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(64))]
+    /// Any prefix of a real bag reads as a prefix of its messages (a truncated recording keeps
+    /// what came before the cut, in order, byte for byte), or errs when not one record is whole.
+    #[test]
+    fn a_cut_bag_reads_as_a_prefix_of_its_messages(cut in 0.0..1.0f64) {
+        let bytes = std::fs::read("bags/mujoco/drawer.mcap").unwrap();
+        let limits = bom::input::InputLimits::default();
+        let full = bom::input::read_mcap(&bytes, "full", &limits, &mut Diagnostics::default()).unwrap().messages;
+        let n = (bytes.len() as f64 * cut) as usize;
+        if let Ok(part) = bom::input::read_mcap(&bytes[..n], "cut", &limits, &mut Diagnostics::default()) {
+            prop_assert!(part.messages.len() <= full.len());
+            for (a, b) in part.messages.iter().zip(&full) {
+                prop_assert!(a.topic == b.topic && a.log_time == b.log_time && a.data == b.data);
+            }
+        }
+    }
+}
+
 /// The node's streaming pipeline fed clouds and wrenches with shuffled, duplicated and far-apart
 /// stamps: no panic; closed windows stay sorted and disjoint; every dropped message is counted.
 #[test]

@@ -133,6 +133,11 @@ pub fn decode(cloud: &PointCloud2, max_points: u64, max_range_m: f64) -> Result<
     if n_points > max_points {
         return Err(CloudError::TooManyPoints { points: n_points, width: w, height: h, max: max_points });
     }
+    if n_points == 0 {
+        // Without this, width 0 and row_step 0 pass every check above and 4e9 empty rows take
+        // seconds to walk (found by the `pointcloud` fuzz target).
+        return Ok(LabeledPoints::default());
+    }
     let big = cloud.is_bigendian;
     let float_label = label.datatype == PointField::FLOAT32;
     let max_r2 = max_range_m * max_range_m;
@@ -271,6 +276,11 @@ mod tests {
         (zero_step.width, zero_step.point_step, zero_step.row_step) = (u32::MAX, 0, 0);
         assert!(matches!(decode(&zero_step, u64::MAX, f64::INFINITY), Err(CloudError::FieldOverrun { .. })));
         assert!(matches!(decode(&c, 1, f64::INFINITY), Err(CloudError::TooManyPoints { points: 2, .. })));
+        let mut no_columns = c.clone();
+        (no_columns.width, no_columns.height, no_columns.row_step) = (0, u32::MAX, 0);
+        // 4e9 empty rows (once walked one by one: seconds per cloud); the fuzz target's inputs
+        // that found it are in fuzz/corpus/pointcloud/slow-*, run by CI with a 10 s timeout.
+        assert_eq!(decode(&no_columns, u64::MAX, f64::INFINITY).unwrap().points.len(), 0);
         let far = decode(&c, u64::MAX, 2.0).unwrap();
         assert_eq!((far.labels, far.out_of_range), (vec![], 1));
     }

@@ -288,6 +288,17 @@ impl Online {
                     let what = if matches!(h, Held::Cloud { .. }) { "cloud" } else { "wrench" };
                     self.diag.warn(&format!("{}.header.frame_id", h.topic()), "unknown frame", &format!("{e}; {what} skipped"));
                 }
+                // Far ahead of the stream and not transformable: waiting for it would hold up
+                // every message behind it (a stamp glitch on a cloud in a moving frame).
+                Err(_) if stamp.seconds() - self.clock.now > self.cfg.input.stamp_jump_s => {
+                    let h = self.held.pop_front().expect("non-empty");
+                    let ahead = stamp.seconds() - self.clock.now;
+                    self.diag.warn(
+                        h.topic(),
+                        "stamp outlier",
+                        &format!("header.stamp {:.6} s is {ahead:.3} s ahead of the stream with no transform to the fixed frame yet; message skipped", stamp.seconds()),
+                    );
+                }
                 Err(_) => break,
             }
         }
@@ -600,5 +611,31 @@ mod tests {
         assert!(first_kept > 60.0 - 5.0 * max as f64 - 1.0, "{first_kept}");
         assert!(on.tracks[&1].iter().all(|o| o.stamp >= first_kept - 1.0), "old observations kept");
         assert!(on.wrenches.iter().all(|w| w.stamp >= first_kept - 1.0), "old wrenches kept");
+    }
+
+    /// A cloud in a moving camera frame stamped 10^6 s ahead has no transform and never will:
+    /// it is dropped as a stamp outlier instead of holding up every message behind it.
+    #[test]
+    fn a_future_cloud_in_a_moving_frame_does_not_hold_up_the_stream() {
+        use crate::msgs::{Transform, TransformStamped};
+        let cfg = Config::new();
+        let mut on = Online::new(&cfg);
+        let mut seen = 0;
+        for k in 0..100 {
+            let t = k as f64 / 30.0;
+            let tf = TransformStamped {
+                header: Header { stamp: Time::from_seconds(t), frame_id: "world".into() },
+                child_frame_id: "camera".into(),
+                transform: Transform { translation: Vector3 { x: 0.001 * k as f64, y: 0.0, z: 1.0 }, rotation: Default::default() },
+            };
+            seen += on.tf("/tf", &TFMessage { transforms: vec![tf] }, false).len();
+            let mut c = cloud(if k == 50 { t + 1e6 } else { t });
+            c.header.frame_id = "camera".into();
+            seen += on.cloud("/segmented_points", &c).len();
+        }
+        // Every cloud but the outlier was used (each cloud's transform came just before it).
+        assert_eq!(seen, 99, "{:?}", on.diag.counts());
+        assert_eq!(on.diag.counts().get("/segmented_points: stamp outlier"), Some(&1), "{:?}", on.diag.counts());
+        assert_eq!(on.diag.total(), 1);
     }
 }
