@@ -254,17 +254,25 @@ def run(args):
     starts = [k * PUSH_PERIOD_S + 2.0 for k in range(int(end / PUSH_PERIOD_S) + 1)]
     pushes = sum(1 for s0 in starts if any(a <= s0 and s0 + 2.5 <= b - 2.0 for a, b in published))
     warnings = sum(1 for l in lines if " WARN " in f" {l}")
+    out = {
+        "phases": phases, "memory_kb": memory, "latency": latencies, "merges": merges, "node_exit": code,
+        "pushes": pushes, "windows": windows, "forgotten": forgotten, "updates": updates, "merged": merged,
+        "warnings": warnings, "killed_at_s": killed_at, "restarted_at_s": restart, "alive_after_restart": alive,
+        "report": report,
+    }
+    with open(os.path.join(args.out, "soak.json"), "w") as f:
+        json.dump(out, f, indent=1)
+    return analyze(out, args.out)
+
+
+def analyze(d, out_dir):
+    """The acceptance checks of issue 27 on a run's record (soak.json), and the plots."""
+    (_, _, soak_end), (_, _, over_end), _ = d["phases"]
+    memory, latencies, restart = d["memory_kb"], d["latency"], d["restarted_at_s"]
     after5 = [kb for t, kb in memory if 300.0 <= t <= soak_end]
     first5 = [lat for t, _, lat in latencies if t <= 305.0]
     later = [lat for t, _, lat in latencies if 305.0 < t <= soak_end]
     after_restart = [lat for t, _, lat in latencies if t > restart]
-    out = {
-        "phases": phases, "memory_kb": memory, "latency": latencies, "merges": merges, "node_exit": code,
-        "pushes": pushes, "windows": windows, "forgotten": forgotten, "updates": updates, "merged": merged,
-        "warnings": warnings, "killed_at_s": killed_at, "restarted_at_s": restart, "report": report,
-    }
-    with open(os.path.join(args.out, "soak.json"), "w") as f:
-        json.dump(out, f, indent=1)
     ok = True
 
     def check(c, what):
@@ -275,16 +283,23 @@ def run(args):
     if after5:
         growth = (max(after5) - after5[0]) / after5[0]
         check(growth <= 0.10, f"resident memory after the first 5 minutes: {after5[0] / 1024:.1f} -> max {max(after5) / 1024:.1f} MiB ({100 * growth:+.1f}%)")
-    over = [kb for t, kb in memory if soak_end < t <= over_end]
-    if over and after5:
-        check(max(over) <= 1.2 * max(after5), f"memory under 3x overload: max {max(over) / 1024:.1f} MiB (soak max {max(after5) / 1024:.1f})")
-    check(windows >= pushes, f"every push closed a window: {pushes} pushes, {windows} windows")
-    check(updates + merged >= windows - 1, f"every window gave a posterior or a counted merge: {windows} windows, {updates} updates, {merged} merged, {forgotten} forgotten")
+    # Under overload the buffers fill to a new level within seconds; bounded means a plateau: the
+    # last half of the phase no higher than 10% over its first minute.
+    over = [(t, kb) for t, kb in memory if soak_end < t <= over_end]
+    if over:
+        t0 = over[0][0]
+        first = [kb for t, kb in over if t <= t0 + 60.0]
+        last = [kb for t, kb in over if t >= (t0 + over_end) / 2]
+        check(max(last) <= 1.1 * max(first), f"memory under 3x overload levels off: first minute max {max(first) / 1024:.1f} MiB, last half max {max(last) / 1024:.1f} MiB (soak {max(after5) / 1024:.1f})")
+    check(d["windows"] >= d["pushes"], f"every push closed a window: {d['pushes']} pushes, {d['windows']} windows")
+    check(d["updates"] + d["merged"] >= d["windows"] - 1,
+          f"every window gave a posterior or a counted merge: {d['windows']} windows, {d['updates']} updates, {d['merged']} merged, {d['forgotten']} forgotten")
     if first5 and later:
         check(median(later) <= 1.5 * median(first5), f"median latency window closed -> posterior: first 5 min {median(first5):.2f} s, later {median(later):.2f} s")
-    check(alive and len(after_restart) > 0, f"node alive after the publisher was killed at {killed_at:.0f} s and restarted; {len(after_restart)} posterior(s) after the restart")
-    check(code == 0, f"node exit {code} on SIGINT")
-    print(report)
+    check(d["alive_after_restart"] and len(after_restart) > 0,
+          f"node alive after the publisher was killed at {d['killed_at_s']:.0f} s and restarted; {len(after_restart)} posterior(s) after the restart")
+    check(d["node_exit"] == 0, f"node exit {d['node_exit']} on SIGINT")
+    print(d["report"])
     try:
         import matplotlib
 
@@ -293,19 +308,19 @@ def run(args):
 
         fig, ax = plt.subplots(figsize=(8, 3))
         ax.plot([t / 60 for t, _ in memory], [kb / 1024 for _, kb in memory])
-        for name, a, _ in phases:
+        for name, a, _ in d["phases"]:
             ax.axvline(a / 60, color="grey", lw=0.5)
             ax.text(a / 60, ax.get_ylim()[1], name, fontsize=7, va="top")
         ax.set_xlabel("time [min]")
         ax.set_ylabel("bom node resident memory [MiB]")
         fig.tight_layout()
-        fig.savefig(os.path.join(args.out, "soak_memory.svg"))
+        fig.savefig(os.path.join(out_dir, "soak_memory.svg"))
         fig, ax = plt.subplots(figsize=(8, 3))
         ax.plot([t / 60 for t, _, _ in latencies], [lat for _, _, lat in latencies], ".", ms=3)
         ax.set_xlabel("time [min]")
         ax.set_ylabel("window closed -> posterior [s]")
         fig.tight_layout()
-        fig.savefig(os.path.join(args.out, "soak_latency.svg"))
+        fig.savefig(os.path.join(out_dir, "soak_latency.svg"))
     except ImportError:
         print("note: matplotlib not installed: no plots")
     return 0 if ok else 1
@@ -319,6 +334,7 @@ def main():
     ap.add_argument("--restart-seconds", type=float, default=60.0)
     ap.add_argument("--points", type=int, default=20000)
     ap.add_argument("--out", default="target/soak")
+    ap.add_argument("--analyze", metavar="SOAK_JSON", help="only check and plot a finished run's record")
     ap.add_argument("--publish", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--epoch", type=float, default=0.0, help=argparse.SUPPRESS)
     ap.add_argument("--from", dest="t0", type=float, default=0.0, help=argparse.SUPPRESS)
@@ -326,6 +342,9 @@ def main():
     ap.add_argument("--rate", type=float, default=30.0, help=argparse.SUPPRESS)
     args = ap.parse_args()
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    if args.analyze:
+        with open(args.analyze) as f:
+            return analyze(json.load(f), os.path.dirname(os.path.abspath(args.analyze)))
     return publish(args) if args.publish else run(args)
 
 
