@@ -98,7 +98,7 @@ proptest! {
             let mut diag = Diagnostics::default();
             let mut released = Vec::new();
             for (i, &t) in stamps.iter().enumerate() {
-                released.extend(g.push("/t", t, i, &mut diag).0);
+                released.extend(g.push("/t", t, i, &mut diag));
             }
             released.extend(g.flush());
             let mut ids: Vec<usize> = released.iter().map(|(_, i)| *i).collect();

@@ -20,7 +20,7 @@ use serde::{Deserialize, Serialize};
 use crate::diagnostics::Diagnostics;
 use crate::msgs::{self, PointCloud2, TFMessage, WrenchStamped};
 pub use pointcloud::LabeledPoints;
-pub use stamps::{StampGuard, StampLimits, StampVerdict};
+pub use stamps::{StampGuard, StampLimits};
 pub use tf::TfBuffer;
 
 /// Bounds on what the input stage accepts (issue 27). Every size read from input is checked
@@ -285,14 +285,15 @@ fn read_chunk(body: &[u8], limit: usize) -> Result<Vec<Record<'static>>, String>
             .with_prevalidate_chunk_crcs(true)
             .with_record_length_limit(limit),
     );
-    let mut framed = Vec::with_capacity(9 + body.len());
-    framed.push(mcap::records::op::CHUNK);
-    framed.extend_from_slice(&(body.len() as u64).to_le_bytes());
-    framed.extend_from_slice(body);
-    let mut rest = &framed[..];
+    // The reader reads a chunk record: its opcode and length, then the body (fed in place).
+    let mut head = [0u8; 9];
+    head[0] = mcap::records::op::CHUNK;
+    head[1..].copy_from_slice(&(body.len() as u64).to_le_bytes());
+    let (mut head, mut rest) = (&head[..], body);
     let mut records = Vec::new();
     while let Some(event) = reader.next_event() {
         match event.map_err(|e| e.to_string())? {
+            LinearReadEvent::ReadRequest(need) if !head.is_empty() => feed(&mut reader, &mut head, need),
             LinearReadEvent::ReadRequest(need) => feed(&mut reader, &mut rest, need),
             LinearReadEvent::Record { data, opcode } => records.extend(parse_used(opcode, data)?.map(|r| r.into_owned())),
         }
@@ -418,17 +419,18 @@ pub fn decode_recording(bags: &[Bag], topics: &Topics, fixed_frame: &str, diag: 
     decode_recording_with(bags, topics, fixed_frame, &InputLimits::default(), diag)
 }
 
-/// A cloud or a wrench on its way through a topic's [`StampGuard`].
-enum Timed {
+/// A cloud or a wrench in the fixed frame, on its way through its topic's [`StampGuard`] (replay
+/// and the node's streaming pipeline alike).
+pub enum Sample {
     Cloud(CloudFrame),
     Wrench(WrenchSample),
 }
 
 impl Recording {
-    fn push(&mut self, item: Timed) {
+    fn push(&mut self, item: Sample) {
         match item {
-            Timed::Cloud(c) => self.clouds.push(c),
-            Timed::Wrench(w) => self.wrenches.push(w),
+            Sample::Cloud(c) => self.clouds.push(c),
+            Sample::Wrench(w) => self.wrenches.push(w),
         }
     }
 }
@@ -462,21 +464,21 @@ pub fn decode_recording_with(
     }
     let mut rec = Recording::default();
     for bag in bags {
-        let mut guards: HashMap<String, StampGuard<Timed>> = HashMap::new();
+        let mut guards: HashMap<String, StampGuard<Sample>> = HashMap::new();
         for m in &bag.messages {
             let item = if m.topic == topics.points {
                 let Some(cloud) = decode_or_warn::<PointCloud2>(m, diag) else { continue };
                 let Some(c) = cloud_in_fixed_frame(&m.topic, &cloud, &tf, fixed_frame, limits, diag) else { continue };
-                (c.stamp, Timed::Cloud(c))
+                (c.stamp, Sample::Cloud(c))
             } else if m.topic == topics.wrench {
                 let Some(w) = decode_or_warn::<WrenchStamped>(m, diag) else { continue };
                 let Some(w) = wrench_in_fixed_frame(&m.topic, &w, &tf, fixed_frame, limits, diag) else { continue };
-                (w.stamp, Timed::Wrench(w))
+                (w.stamp, Sample::Wrench(w))
             } else {
                 continue;
             };
             let guard = guards.entry(m.topic.clone()).or_insert_with(|| StampGuard::new(limits.stamps()));
-            for (_, item) in guard.push(&m.topic, item.0, item.1, diag).0 {
+            for (_, item) in guard.push(&m.topic, item.0, item.1, diag) {
                 rec.push(item);
             }
         }

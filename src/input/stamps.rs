@@ -25,15 +25,6 @@ pub struct StampLimits {
     pub reset_messages: u32,
 }
 
-/// What happened to the message just pushed, besides what was released.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum StampVerdict {
-    Accepted,
-    /// Held until the next message tells whether its jump is real.
-    Held,
-    Dropped,
-}
-
 /// The clock of one topic and the one message, if any, whose jump ahead awaits confirmation.
 #[derive(Debug, Clone)]
 pub struct StampGuard<T> {
@@ -51,14 +42,10 @@ impl<T> StampGuard<T> {
         StampGuard { limits, clock: None, suspect: None, behind: (0, f64::NEG_INFINITY) }
     }
 
-    /// The topic's clock: the stamp of the last accepted message \[s\].
-    pub fn clock(&self) -> Option<f64> {
-        self.clock
-    }
-
     /// Offer the message `item` stamped `t` \[s\] on `topic`; returns the messages released, in
-    /// order (this one, a confirmed earlier one, both, or none), and what became of this one.
-    pub fn push(&mut self, topic: &str, t: f64, item: T, diag: &mut Diagnostics) -> (Vec<(f64, T)>, StampVerdict) {
+    /// order: this one, a confirmed earlier one, both, or none (this one held for its jump, or
+    /// dropped and counted).
+    pub fn push(&mut self, topic: &str, t: f64, item: T, diag: &mut Diagnostics) -> Vec<(f64, T)> {
         let mut out = Vec::new();
         if let Some((ts, held)) = self.suspect.take() {
             let clock = self.clock.unwrap_or(f64::NEG_INFINITY);
@@ -80,15 +67,15 @@ impl<T> StampGuard<T> {
                 self.suspect = Some((ts, held));
             }
         }
-        let verdict = self.offer(topic, t, item, &mut out, diag);
-        (out, verdict)
+        self.offer(topic, t, item, &mut out, diag);
+        out
     }
 
-    fn offer(&mut self, topic: &str, t: f64, item: T, out: &mut Vec<(f64, T)>, diag: &mut Diagnostics) -> StampVerdict {
+    fn offer(&mut self, topic: &str, t: f64, item: T, out: &mut Vec<(f64, T)>, diag: &mut Diagnostics) {
         let Some(clock) = self.clock else {
             self.clock = Some(t);
             out.push((t, item));
-            return StampVerdict::Accepted;
+            return;
         };
         if t < clock {
             let (n, last) = self.behind;
@@ -106,19 +93,18 @@ impl<T> StampGuard<T> {
                 }
                 self.clock = Some(t);
                 out.push((t, item));
-                return StampVerdict::Accepted;
+                return;
             }
             diag.warn(topic, "time went backwards", &format!("header.stamp {t:.6} s after {clock:.6} s; message skipped"));
-            return StampVerdict::Dropped;
+            return;
         }
         self.behind = (0, f64::NEG_INFINITY);
         if self.suspect.is_none() && t - clock > self.limits.jump_s {
             self.suspect = Some((t, item));
-            return StampVerdict::Held;
+            return;
         }
         self.clock = Some(t);
         out.push((t, item));
-        StampVerdict::Accepted
     }
 
     /// End of the stream: a message still held is released (nothing refuted its jump).
@@ -140,7 +126,7 @@ mod tests {
         let mut diag = Diagnostics::default();
         let mut got = Vec::new();
         for (i, &t) in stamps.iter().enumerate() {
-            got.extend(g.push("/t", t, i, &mut diag).0.into_iter().map(|(t, _)| t));
+            got.extend(g.push("/t", t, i, &mut diag).into_iter().map(|(t, _)| t));
         }
         got.extend(g.flush().map(|(t, _)| t));
         (got, diag)

@@ -27,7 +27,7 @@ use crate::inference::svi;
 use crate::criticism::Criticism;
 use crate::model::likelihood::Evidence;
 use crate::input::tf::TfBuffer;
-use crate::input::{self, CloudFrame, LabeledPoints, StampGuard, WrenchSample};
+use crate::input::{self, CloudFrame, LabeledPoints, Sample, StampGuard, WrenchSample};
 use crate::msgs::{Header, PointCloud2, TFMessage, WrenchStamped};
 use crate::perception::{self, PartGeometry, PartObservation, PartTracks, Perception};
 use crate::windows::{self, Window};
@@ -85,12 +85,6 @@ impl Clock {
     }
 }
 
-/// A cloud or wrench in the fixed frame, on its way through its topic's [`StampGuard`].
-enum Ready {
-    Cloud(CloudFrame),
-    Wrench(WrenchSample),
-}
-
 enum Held {
     Cloud { topic: String, header: Header, points: LabeledPoints },
     Wrench { topic: String, msg: WrenchStamped },
@@ -137,7 +131,7 @@ pub struct Online {
     held: VecDeque<Held>,
     /// Each input topic's clock (a stamp far ahead waits for the next message; see
     /// [`input::stamps`]).
-    stamps: HashMap<String, StampGuard<Ready>>,
+    stamps: HashMap<String, StampGuard<Sample>>,
     /// Newest header stamp on any input topic \[s\].
     clock: Clock,
     /// Newest stamp of a dynamic transform \[s\].
@@ -269,17 +263,16 @@ impl Online {
                     let (topic, t, ready) = match h {
                         Held::Cloud { topic, header, points } => {
                             let t = header.stamp.seconds();
-                            (topic, t, Ready::Cloud(input::cloud_frame(points, &iso, t)))
+                            (topic, t, Sample::Cloud(input::cloud_frame(points, &iso, t)))
                         }
                         Held::Wrench { topic, msg } => {
                             let t = msg.header.stamp.seconds();
-                            (topic, t, Ready::Wrench(input::wrench_sample(&msg, &iso)))
+                            (topic, t, Sample::Wrench(input::wrench_sample(&msg, &iso)))
                         }
                     };
                     let limits = self.cfg.input.stamps();
                     let guard = self.stamps.entry(topic.clone()).or_insert_with(|| StampGuard::new(limits));
-                    let (released, _) = guard.push(&topic, t, ready, &mut self.diag);
-                    for (_, r) in released {
+                    for (_, r) in guard.push(&topic, t, ready, &mut self.diag) {
                         self.take(r, &mut out);
                     }
                 }
@@ -306,13 +299,13 @@ impl Online {
     }
 
     /// Use a cloud or wrench whose stamp its topic's clock accepted.
-    fn take(&mut self, r: Ready, out: &mut Vec<(f64, Vec<(u32, PartObservation)>)>) {
+    fn take(&mut self, r: Sample, out: &mut Vec<(f64, Vec<(u32, PartObservation)>)>) {
         match r {
-            Ready::Cloud(c) => {
+            Sample::Cloud(c) => {
                 let t = c.stamp;
                 out.push((t, self.observe(c)));
             }
-            Ready::Wrench(w) => self.add_wrench(w),
+            Sample::Wrench(w) => self.add_wrench(w),
         }
     }
 
@@ -413,7 +406,7 @@ impl Online {
         self.tf_clock.now = f64::INFINITY;
         self.release();
         // ... and what waits for its stamp to be confirmed (nothing came to refute it).
-        let held: Vec<Ready> = self.stamps.values_mut().filter_map(|g| g.flush()).map(|(_, r)| r).collect();
+        let held: Vec<Sample> = self.stamps.values_mut().filter_map(|g| g.flush()).map(|(_, r)| r).collect();
         let mut out = Vec::new();
         for r in held {
             self.take(r, &mut out);
