@@ -263,7 +263,42 @@ fn parse_used(opcode: u8, data: &[u8]) -> Result<Option<Record<'_>>, String> {
     if ![op::SCHEMA, op::CHANNEL, op::MESSAGE, op::METADATA].contains(&opcode) {
         return Ok(None);
     }
+    strings_fit(opcode, data).map_err(|e| format!("record (opcode 0x{opcode:02x}): {e}"))?;
     mcap::parse_record(opcode, data).map(Some).map_err(|e| format!("record (opcode 0x{opcode:02x}): {e}"))
+}
+
+/// Whether every length-prefixed string and string map of a schema, channel or metadata record
+/// fits in the record (MCAP spec field layouts). `mcap` 0.26 parses strings with binrw, which
+/// reserves a string's declared `u32` length before reading it: a damaged length allocated up to
+/// 4 GiB per record (found by the `mcap_bag` fuzz target under a malloc limit).
+fn strings_fit(opcode: u8, data: &[u8]) -> Result<(), String> {
+    use mcap::records::op;
+    fn u32_at(b: &[u8], at: usize) -> Result<usize, String> {
+        b.get(at..at + 4).map(|x| u32::from_le_bytes([x[0], x[1], x[2], x[3]]) as usize).ok_or_else(|| "record too short".into())
+    }
+    // One length-prefixed field at `at`; returns the offset after it.
+    fn field(b: &[u8], at: usize, what: &str) -> Result<usize, String> {
+        let len = u32_at(b, at)?;
+        let end = (at + 4).checked_add(len).filter(|&e| e <= b.len());
+        end.ok_or_else(|| format!("{what} of {len} bytes overruns the record ({} bytes)", b.len()))
+    }
+    // A string map: its byte length, then key/value strings within it.
+    fn map(b: &[u8], at: usize, what: &str) -> Result<usize, String> {
+        let end = field(b, at, what)?;
+        let inner = &b[..end];
+        let mut k = at + 4;
+        while k < end {
+            k = field(inner, k, what)?;
+            k = field(inner, k, what)?;
+        }
+        Ok(end)
+    }
+    match opcode {
+        op::SCHEMA => field(data, field(data, 2, "schema name")?, "schema encoding").map(drop),
+        op::CHANNEL => map(data, field(data, field(data, 4, "channel topic")?, "message encoding")?, "channel metadata").map(drop),
+        op::METADATA => map(data, field(data, 0, "metadata name")?, "metadata map").map(drop),
+        _ => Ok(()),
+    }
 }
 
 /// Hand a sans-io reader at most `need` bytes of `rest`: never more than the file still holds,
