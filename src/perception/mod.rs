@@ -190,79 +190,62 @@ impl Perception {
     /// match neither their model nor any pose, are not reported for this frame.
     pub fn observe(&mut self, cloud: &CloudFrame) -> Vec<(u32, PartObservation)> {
         let cfg = &self.config;
-        let mut by_label: BTreeMap<u32, Vec<Vector3<f64>>> = BTreeMap::new();
-        for (p, l) in cloud.points.iter().zip(&cloud.labels) {
-            by_label.entry(*l).or_default().push(p.coords);
-        }
-        let mut dropped: BTreeMap<u32, usize> = BTreeMap::new();
-        for (l, pts) in by_label.iter_mut() {
-            if pts.len() > cfg.max_points {
-                let n = pts.len();
-                *pts = (0..cfg.max_points).map(|i| pts[i * n / cfg.max_points]).collect();
-                dropped.insert(*l, n - cfg.max_points);
-            }
-        }
-        // Points of every part in one tree, to find points near another part.
-        let mut all: KdTree<f64, 3> = KdTree::new();
-        let mut seen = std::collections::HashSet::new();
-        for (l, pts) in &by_label {
-            for p in pts {
-                // Exact duplicates add nothing and a k-d tree bucket holds few of them.
-                if seen.insert((p.x.to_bits(), p.y.to_bits(), p.z.to_bits())) {
-                    all.add(&[p.x, p.y, p.z], *l as u64);
-                }
-            }
-        }
-        let r2 = cfg.boundary_m * cfg.boundary_m;
         let mut out = Vec::new();
-        for (label, pts) in by_label {
-            if pts.len() < cfg.min_points {
-                continue;
-            }
-            let weights: Vec<f64> = pts
-                .iter()
-                .map(|p| {
-                    let near_other = near_other_label(&all, p, r2, label);
-                    if near_other { cfg.boundary_weight } else { 1.0 }
-                })
-                .collect();
-            let dropped = dropped.get(&label).copied().unwrap_or(0);
-            let state = match self.parts.get_mut(&label) {
-                Some(s) => s,
-                None => {
-                    let pts3: Vec<Point3<f64>> = pts.iter().map(|p| Point3::from(*p)).collect();
-                    let keep = geometry::inliers(&pts3);
-                    let clean: Vec<Vector3<f64>> =
-                        keep.iter().filter(|&&i| weights[i] >= 1.0).map(|&i| pts[i]).collect();
-                    let clean = if clean.len() >= cfg.min_points { clean } else { keep.iter().map(|&i| pts[i]).collect() };
-                    let anchor = clean.iter().sum::<Vector3<f64>>() / clean.len().max(1) as f64;
-                    let tracker = Tracker::new(&clean, cfg);
-                    self.parts.insert(label, PartState { tracker, anchor, frames: Vec::new() });
-                    let obs = observation(cloud.stamp, Isometry3::identity(), None, anchor, cfg, clean.len(), pts.len() - clean.len() + dropped, 1.0);
-                    out.push((label, obs));
-                    continue;
-                }
-            };
-            let Some(reg) = state.tracker.update(&FramePoints { points: &pts, weights: &weights }, cfg) else { continue };
-            let obs = observation(cloud.stamp, reg.pose, Some(&reg.information), state.anchor, cfg, pts.len(), dropped, reg.matched);
-            state.frames.push((cloud.stamp, pts, weights));
-            if let Some(n) = self.frame_limit {
-                if state.frames.len() > n {
-                    let excess = state.frames.len() - n;
-                    state.frames.drain(..excess);
-                }
-            }
-            out.push((label, obs));
+        for part in split_parts(cloud, cfg) {
+            let label = part.label;
+            let state = self.parts.remove(&label);
+            let (state, obs) = observe_part(state, cloud.stamp, part, cfg, self.frame_limit);
+            self.parts.insert(label, state);
+            out.extend(obs.map(|o| (label, o)));
         }
         out
     }
 
-    /// Observe a whole recording, then [`refine`](Self::refine) the poses.
+    /// Observe a whole recording, then [`refine`](Self::refine) the poses: the same tracks as
+    /// [`observe`](Self::observe) on every cloud in turn, computed with the clouds split by part
+    /// in parallel and then every part's tracker run over its frames on a thread of its own (the
+    /// parts' trackers are independent given the split).
     pub fn observe_all(&mut self, clouds: &[CloudFrame]) -> PartTracks {
+        let cfg = &self.config;
+        let threads = std::thread::available_parallelism().map_or(1, |n| n.get()).clamp(1, clouds.len().max(1));
+        let chunk = clouds.len().div_ceil(threads).max(1);
+        let split: Vec<Vec<SplitPart>> = std::thread::scope(|sc| {
+            let jobs: Vec<_> = clouds.chunks(chunk).map(|cs| sc.spawn(move || cs.iter().map(|c| split_parts(c, cfg)).collect::<Vec<_>>())).collect();
+            jobs.into_iter().flat_map(|j| j.join().unwrap_or_else(|e| std::panic::resume_unwind(e))).collect()
+        });
+        // Every part's frames in time order.
+        let mut per_part: BTreeMap<u32, Vec<(f64, SplitPart)>> = BTreeMap::new();
+        for (c, parts) in clouds.iter().zip(split) {
+            for part in parts {
+                per_part.entry(part.label).or_default().push((c.stamp, part));
+            }
+        }
+        let limit = self.frame_limit;
+        let owned: Vec<_> = per_part.into_iter().map(|(label, frames)| (label, self.parts.remove(&label), frames)).collect();
+        let tracked: Vec<_> = std::thread::scope(|sc| {
+            let jobs: Vec<_> = owned
+                .into_iter()
+                .map(|(label, mut state, frames)| {
+                    sc.spawn(move || {
+                        let mut track = Vec::new();
+                        for (stamp, part) in frames {
+                            let (s, obs) = observe_part(state.take(), stamp, part, cfg, limit);
+                            state = Some(s);
+                            track.extend(obs);
+                        }
+                        (label, state, track)
+                    })
+                })
+                .collect();
+            jobs.into_iter().map(|j| j.join().unwrap_or_else(|e| std::panic::resume_unwind(e))).collect()
+        });
         let mut tracks = PartTracks::new();
-        for c in clouds {
-            for (label, obs) in self.observe(c) {
-                tracks.entry(label).or_default().push(obs);
+        for (label, state, track) in tracked {
+            if let Some(state) = state {
+                self.parts.insert(label, state);
+            }
+            if !track.is_empty() {
+                tracks.insert(label, track);
             }
         }
         self.refine(&mut tracks);
@@ -273,26 +256,108 @@ impl Perception {
     /// registered early met a model that still lacked the surfaces seen later (a door's far edge,
     /// a cabinet's inside); the complete model removes the bias that left, which a
     /// track's later frames do not have. A pose moves only where that explains the points better
-    /// by more than `refine_penalty_nats`.
+    /// by more than `refine_penalty_nats`. Parts are refined in parallel (independent).
     pub fn refine(&self, tracks: &mut PartTracks) {
-        for (label, obs) in tracks.iter_mut() {
-            let Some(state) = self.parts.get(label) else { continue };
-            let mut frames = state.frames.iter().peekable();
-            for o in obs.iter_mut() {
-                while frames.peek().is_some_and(|f| f.0 < o.stamp) {
-                    frames.next();
-                }
-                let Some((_, pts, w)) = frames.peek().filter(|f| f.0 == o.stamp) else { continue };
-                if let Some(reg) = state.tracker.refine(&FramePoints { points: pts, weights: w }, &o.pose, &self.config) {
-                    *o = observation(o.stamp, reg.pose, Some(&reg.information), state.anchor, &self.config, o.points, o.outliers, reg.matched);
-                }
+        std::thread::scope(|sc| {
+            for (label, obs) in tracks.iter_mut() {
+                let Some(state) = self.parts.get(label) else { continue };
+                let cfg = &self.config;
+                sc.spawn(move || refine_part(state, obs, cfg));
             }
-        }
+        });
     }
 
     /// Geometry of every part seen so far, from its current model.
     pub fn geometry(&self) -> BTreeMap<u32, PartGeometry> {
         self.parts.iter().map(|(l, s)| (*l, part_geometry(&s.tracker.model.points, &self.config))).collect()
+    }
+}
+
+/// One part's points in one cloud, subsampled, with their weights (`boundary_weight` near
+/// another part's points).
+struct SplitPart {
+    label: u32,
+    points: Vec<Vector3<f64>>,
+    weights: Vec<f64>,
+    /// Points dropped beyond the subsample.
+    dropped: usize,
+}
+
+/// Split a cloud by part label (label 0 is not in `cloud`), subsample each part to `max_points`
+/// and weigh points near another part; parts with fewer than `min_points` points are left out.
+fn split_parts(cloud: &CloudFrame, cfg: &PerceptionConfig) -> Vec<SplitPart> {
+    let mut by_label: BTreeMap<u32, Vec<Vector3<f64>>> = BTreeMap::new();
+    for (p, l) in cloud.points.iter().zip(&cloud.labels) {
+        by_label.entry(*l).or_default().push(p.coords);
+    }
+    let mut dropped: BTreeMap<u32, usize> = BTreeMap::new();
+    for (l, pts) in by_label.iter_mut() {
+        if pts.len() > cfg.max_points {
+            let n = pts.len();
+            *pts = (0..cfg.max_points).map(|i| pts[i * n / cfg.max_points]).collect();
+            dropped.insert(*l, n - cfg.max_points);
+        }
+    }
+    // Points of every part in one tree, to find points near another part.
+    let mut all: KdTree<f64, 3> = KdTree::new();
+    let mut seen = std::collections::HashSet::new();
+    for (l, pts) in &by_label {
+        for p in pts {
+            // Exact duplicates add nothing and a k-d tree bucket holds few of them.
+            if seen.insert((p.x.to_bits(), p.y.to_bits(), p.z.to_bits())) {
+                all.add(&[p.x, p.y, p.z], *l as u64);
+            }
+        }
+    }
+    let r2 = cfg.boundary_m * cfg.boundary_m;
+    by_label
+        .into_iter()
+        .filter(|(_, pts)| pts.len() >= cfg.min_points)
+        .map(|(label, points)| {
+            let weights = points.iter().map(|p| if near_other_label(&all, p, r2, label) { cfg.boundary_weight } else { 1.0 }).collect();
+            SplitPart { label, points, weights, dropped: dropped.get(&label).copied().unwrap_or(0) }
+        })
+        .collect()
+}
+
+/// Observe one part in one frame: a part seen for the first time gets its tracker (its inlier
+/// points away from other parts are its first model, and the frame its reference); otherwise
+/// its tracker registers the points. Returns the part's state and the observation, if any.
+fn observe_part(state: Option<PartState>, stamp: f64, part: SplitPart, cfg: &PerceptionConfig, frame_limit: Option<usize>) -> (PartState, Option<PartObservation>) {
+    let SplitPart { points: pts, weights, dropped, .. } = part;
+    let Some(mut state) = state else {
+        let pts3: Vec<Point3<f64>> = pts.iter().map(|p| Point3::from(*p)).collect();
+        let keep = geometry::inliers(&pts3);
+        let clean: Vec<Vector3<f64>> = keep.iter().filter(|&&i| weights[i] >= 1.0).map(|&i| pts[i]).collect();
+        let clean = if clean.len() >= cfg.min_points { clean } else { keep.iter().map(|&i| pts[i]).collect() };
+        let anchor = clean.iter().sum::<Vector3<f64>>() / clean.len().max(1) as f64;
+        let tracker = Tracker::new(&clean, cfg);
+        let obs = observation(stamp, Isometry3::identity(), None, anchor, cfg, clean.len(), pts.len() - clean.len() + dropped, 1.0);
+        return (PartState { tracker, anchor, frames: Vec::new() }, Some(obs));
+    };
+    let Some(reg) = state.tracker.update(&FramePoints { points: &pts, weights: &weights }, cfg) else { return (state, None) };
+    let obs = observation(stamp, reg.pose, Some(&reg.information), state.anchor, cfg, pts.len(), dropped, reg.matched);
+    state.frames.push((stamp, pts, weights));
+    if let Some(n) = frame_limit {
+        if state.frames.len() > n {
+            let excess = state.frames.len() - n;
+            state.frames.drain(..excess);
+        }
+    }
+    (state, Some(obs))
+}
+
+/// [`Perception::refine`] of one part's track.
+fn refine_part(state: &PartState, obs: &mut [PartObservation], cfg: &PerceptionConfig) {
+    let mut frames = state.frames.iter().peekable();
+    for o in obs.iter_mut() {
+        while frames.peek().is_some_and(|f| f.0 < o.stamp) {
+            frames.next();
+        }
+        let Some((_, pts, w)) = frames.peek().filter(|f| f.0 == o.stamp) else { continue };
+        if let Some(reg) = state.tracker.refine(&FramePoints { points: pts, weights: w }, &o.pose, cfg) {
+            *o = observation(o.stamp, reg.pose, Some(&reg.information), state.anchor, cfg, o.points, o.outliers, reg.matched);
+        }
     }
 }
 
