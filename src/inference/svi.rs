@@ -372,7 +372,7 @@ fn laplace_kinodynamics(
             // Log posterior of the block (physics prior + N(0, I)) and its gradient.
             let mut post = |xi: &[f64]| {
                 s.kd = Some((vec![0.0; kd.dim], xi.to_vec()));
-                let (l, g, _) = dynamics_pass(ev, i, &s, observed.as_ref(), &pre, &desc, &chosen, &transforms, model, None);
+                let (l, g, _) = dynamics_pass(ev, i, &s, observed.as_ref(), &pre, &desc, &chosen, &transforms, model, false, None);
                 let l = l - 0.5 * xi.iter().map(|x| x * x).sum::<f64>();
                 let g: Vec<f64> = g.iter().zip(xi).map(|(g, x)| g - x).collect();
                 (l, g)
@@ -393,7 +393,7 @@ fn laplace_kinodynamics(
             let neg_h = -laplace::hessian(&mut post, &x);
             s.kd = Some((vec![0.0; kd.dim], x.clone()));
             let mut scores = Vec::new();
-            let (_, _, gq) = dynamics_pass(ev, i, &s, observed.as_ref(), &pre, &desc, &chosen, &transforms, model, Some(&mut scores));
+            let (_, _, gq) = dynamics_pass(ev, i, &s, observed.as_ref(), &pre, &desc, &chosen, &transforms, model, false, Some(&mut scores));
             let (ar1, robust) = (variance_inflation(ev, &gq), cluster_inflation(&neg_h, &scores));
             tracing::debug!("part {} {:?}: variance inflation AR(1) {ar1:.2}, window-robust {robust:.2}", ev.parts[i].label, b.joint);
             inflation[i][b.joint.index()] = ar1.max(robust);
@@ -545,7 +545,12 @@ fn lag1_autocorrelation(series: &[Vec<f64>]) -> Option<f64> {
 }
 
 /// The physics prior of block `k` of part `i` over all windows (dynamic mode) and its gradients:
-/// `(log prior, d/d xi_kd, d/d q_t per grid frame)`. With `scores`, also each window's share of
+/// `(log prior, d/d xi_kd, d/d q_t per grid frame)`. `robust`: each window's physics prior made
+/// robust to windows it cannot explain ([`dynamics::robust_window_prior`]) — in the ELBO's
+/// iterations, which decide the tree and the joint types; the Laplace fits of the kinodynamic
+/// factors (the guide's and the reported ones) use the plain physics prior, so that a window the
+/// physics misses widens their intervals (the window-robust inflation) instead of dropping out of
+/// them. With `scores`, also each window's share of
 /// `d/d xi_kd` (one entry per window, the rest term before a window counted in it; zero on damping
 /// and friction where the window does not simulate the joint).
 #[allow(clippy::too_many_arguments)]
@@ -559,6 +564,7 @@ fn dynamics_pass(
     chosen: &[&BlockSample],
     transforms: &[Vec<Displacement<f64>>],
     model: &ModelConfig,
+    robust: bool,
     mut scores: Option<&mut Vec<Vec<f64>>>,
 ) -> (f64, Vec<f64>, Vec<f64>) {
     let Some((_, xi)) = &s.kd else { return (0.0, vec![], vec![]) };
@@ -611,7 +617,12 @@ fn dynamics_pass(
             pushed,
             effects: ev.effects[i],
         };
-        let (lw, gxw, gqw) = dynamics::window_prior(&jw, win, &s.q, observed, xi, dyncfg);
+        let (lw, gxw, gqw) = if robust {
+            let (l, gx, gq, _) = dynamics::robust_window_prior(&jw, win, &s.q, observed, xi, dyncfg, model.velocity_sd_mps);
+            (l, gx, gq)
+        } else {
+            dynamics::window_prior(&jw, win, &s.q, observed, xi, dyncfg)
+        };
         l += lw;
         for (a, b) in gx.iter_mut().zip(&gxw) {
             *a += b;
@@ -749,6 +760,9 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
     let mut last_logits: Option<Vec<f64>> = None;
     let mut final_left: Option<usize> = None;
     let mut f_avg = vec![[0.0f64; 3]; n];
+    // The final phase's conditional ELBOs split into (likelihood, analytic terms, physics prior),
+    // for the debug log: which term decides a type.
+    let mut f_parts = vec![[[0.0f64; 3]; 3]; n];
     // Sum of the guide's parameters over the final phase (Polyak, see the module docs).
     let mut avg_count = 0usize;
     let mut avg_theta = vec![0.0f64; layout.len];
@@ -864,9 +878,16 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
                     let s = &samples[i][k];
                     let (l, gx, mut gq) = block_pass(ev, i, b.joint, &s.xi, &s.q, &pre, &subtree, model);
                     let mut f = l + analytic[i][k];
+                    if final_left.is_some() {
+                        f_parts[i][k][0] += pw * l;
+                        f_parts[i][k][1] += pw * analytic[i][k];
+                    }
                     if let (Some(kd), Some((eps, _))) = (b.kd, &s.kd) {
-                        let (ld, gkd, gqd) = dynamics_pass(ev, i, s, None, &pre, &desc, &chosen, &transforms, model, None);
+                        let (ld, gkd, gqd) = dynamics_pass(ev, i, s, None, &pre, &desc, &chosen, &transforms, model, true, None);
                         f += ld;
+                        if final_left.is_some() {
+                            f_parts[i][k][2] += pw * ld;
+                        }
                         kd.add_sample_grad(&theta, &gkd, eps, pw, &mut grad);
                         for (a, b) in gq.iter_mut().zip(&gqd) {
                             *a += b;
@@ -1051,6 +1072,8 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
     for i in 0..n {
         let f: Vec<f64> = f_avg[i].iter().map(|v| v / avg_count.max(1) as f64).collect();
         tracing::debug!("part {}: conditional ELBOs (rigid, prismatic, revolute) {f:.1?}, parent logits {:.1?}", ev.parts[i].label, parent_logits[i]);
+        let split: Vec<[f64; 3]> = f_parts[i].iter().map(|t| t.map(|v| v / avg_count.max(1) as f64)).collect();
+        tracing::debug!("part {}: (likelihood, analytic, physics) per type {split:.1?}", ev.parts[i].label);
     }
     // The reported kinodynamics: collapsed Laplace (see `laplace_kinodynamics`) under the most
     // probable tree and joint types, on the averaged guide.
