@@ -525,6 +525,7 @@ mod tests {
         assert_eq!(xi.len(), 4 + 2 + 3 + 1);
         check_gradients(&jw, &win, &q, &xi, &cfg);
     }
+
     /// The window-robust prior: a window the physics explains stays physics (responsibility near
     /// 1, value within `log(1 - eps)` of the physics prior's), a door that turned the other way
     /// than the push is an outlier window (responsibility near 0, bounded cost), and the
