@@ -468,6 +468,21 @@ mod tests {
         }
     }
 
+    /// [`push_window`] with 6 N on `joint` (a door of [`door`]'s radius 0.3 m) of 0.5 kg, damping
+    /// 1.5 and friction 0.8, simulated without deviation: the window, the coordinates at its
+    /// frames \[m of path\] and the standardised truth (damping, friction, mass).
+    fn simulated_push(cfg: &DynamicsConfig, joint: &JointParams<f64>, unit_inertia: Matrix3<f64>) -> (WindowEvidence, Vec<f64>, [f64; 3]) {
+        let win = push_window(cfg, 6.0);
+        let (h, n) = (cfg.step_s, win.force.len());
+        let truth = [(1.5f64 / 1.0).ln() / 1.5, (0.8f64 / 1.0).ln() / 1.5, (0.5f64).ln() / 1.5];
+        let inertia = generalised_inertia(JointKind::Revolute, &joint.direction, &joint.point, &[(0.5, joint.com, unit_inertia)]);
+        let tau: Vec<f64> = (0..n).map(|i| if (i as f64) * h < 0.8 { 6.0 * 0.5 } else { 0.0 }).collect();
+        let mut sim = vec![0.0];
+        sim.extend(JointDynamics::new(inertia, 1.5, 0.8, 0.0, 0.0).simulate(0.0, 0.0, &tau, h, cfg.friction_law));
+        let q = win.frame_substep.iter().map(|&s| sim[s] * 0.3).collect();
+        (win, q, truth)
+    }
+
     /// A pushed door's coordinates: the prior prefers the damping and friction that produced
     /// them, and its dual-number gradient matches finite differences.
     #[test]
@@ -476,16 +491,7 @@ mod tests {
         let joint = door(Vector3::z());
         let unit_inertia = Matrix3::from_diagonal(&Vector3::new(0.01, 0.01, 0.02));
         let jw = JointInWindow { joint: &joint, com: joint.com, unit_inertia, subtree: vec![], pushed: true, effects: EffectSet::default() };
-        let win = push_window(&cfg, 6.0);
-        let (h, n) = (cfg.step_s, win.force.len());
-        // Coordinates simulated with b = 1.5, mu = 0.8, m = 0.5 (and no deviation).
-        let truth = [(1.5f64 / 1.0).ln() / 1.5, (0.8f64 / 1.0).ln() / 1.5, (0.5f64).ln() / 1.5];
-        let inertia = generalised_inertia(JointKind::Revolute, &joint.direction, &joint.point, &[(0.5, joint.com, unit_inertia)]);
-        let tau: Vec<f64> = (0..n).map(|i| if (i as f64) * h < 0.8 { 6.0 * 0.5 } else { 0.0 }).collect();
-        let jd = JointDynamics::new(inertia, 1.5, 0.8, 0.0, 0.0);
-        let mut sim = vec![0.0];
-        sim.extend(jd.simulate(0.0, 0.0, &tau, h, cfg.friction_law));
-        let q: Vec<f64> = win.frame_substep.iter().map(|&s| sim[s] * 0.3).collect();
+        let (win, q, truth) = simulated_push(&cfg, &joint, unit_inertia);
         assert!(q[12] > 0.1, "the door turned: {q:?}");
         let at = |b: f64, mu: f64| window_prior(&jw, &win, &q, None, &[b, mu, truth[2], -1.0], &cfg).0;
         let best = at(truth[0], truth[1]);
@@ -536,14 +542,8 @@ mod tests {
         let joint = door(Vector3::z());
         let unit_inertia = Matrix3::from_diagonal(&Vector3::new(0.01, 0.01, 0.02));
         let jw = JointInWindow { joint: &joint, com: joint.com, unit_inertia, subtree: vec![], pushed: true, effects: EffectSet::default() };
-        let win = push_window(&cfg, 6.0);
-        let (h, n) = (cfg.step_s, win.force.len());
-        let inertia = generalised_inertia(JointKind::Revolute, &joint.direction, &joint.point, &[(0.5, joint.com, unit_inertia)]);
-        let tau: Vec<f64> = (0..n).map(|i| if (i as f64) * h < 0.8 { 6.0 * 0.5 } else { 0.0 }).collect();
-        let mut sim = vec![0.0];
-        sim.extend(JointDynamics::new(inertia, 1.5, 0.8, 0.0, 0.0).simulate(0.0, 0.0, &tau, h, cfg.friction_law));
-        let q: Vec<f64> = win.frame_substep.iter().map(|&s| sim[s] * 0.3).collect();
-        let xi = [(1.5f64).ln() / 1.5, (0.8f64).ln() / 1.5, (0.5f64).ln() / 1.5, -1.0];
+        let (win, q, truth) = simulated_push(&cfg, &joint, unit_inertia);
+        let xi = [truth[0], truth[1], truth[2], -1.0];
         let v = crate::model::ModelConfig::default().velocity_sd_mps;
         let (l, _, _, r) = robust_window_prior(&jw, &win, &q, None, &xi, &cfg, v);
         let (lp, _, _) = window_prior(&jw, &win, &q, None, &xi, &cfg);
