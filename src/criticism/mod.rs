@@ -21,6 +21,8 @@
 //!    otherwise the part gets an
 //!    `unexplained` finding with its residual pattern.
 //! 3. The caller (the pipeline) keeps adopted effects in the model for later windows and refits.
+//!    Each later criticism measures every adopted effect again on all windows so far, and one
+//!    whose removal does not raise the held-out error or the ELBO is retracted ([`Criticism::retracted`]).
 //!
 //! Criticism needs the measured wrench: in kinematic mode it reports nothing.
 
@@ -110,6 +112,9 @@ pub struct PartCriticism {
 pub struct Criticism {
     pub parts: Vec<PartCriticism>,
     pub findings: Vec<Finding>,
+    /// Effects adopted by an earlier criticism that the windows so far no longer support (part
+    /// label, kind): the caller takes them out of the model.
+    pub retracted: Vec<(u32, EffectKind)>,
     /// Wall time of the criticism \[s\].
     pub runtime_s: f64,
 }
@@ -150,9 +155,25 @@ pub fn criticise(ev: &Evidence, post: &Posterior, adopted: &BTreeMap<u32, Effect
         let before = rmse(&base.held_out);
         let pattern = Pattern::of(&base.held_out);
         out.parts.push(PartCriticism { label: series.label, rmse_m: before, noise_rmse_m: noise_rmse, pattern, residuals: base.held_out.clone() });
-        // Effects adopted earlier: the model without each, on all windows so far.
+        // Effects adopted earlier: the model without each, on all windows so far. One that no
+        // longer cuts the held-out error, or that the evidence of all windows no longer favours,
+        // is retracted: adoption was decided on fewer windows, and a finding whose error does not
+        // fall is never reported as an effect (issue 25).
         for kind in adopted.get(&series.label).map(|e| e.kinds()).unwrap_or_default() {
             let without = candidate(&series, &ev.times, current.without(kind), &start, dyncfg);
+            let (rmse_without, nats) = (rmse(&without.held_out), base.elbo - without.elbo);
+            if rmse_without <= before || nats < 0.0 {
+                tracing::info!(
+                    "part {}: {} adopted earlier is retracted: held-out RMSE {:.4} m without it, {:.4} m with it, {:+.1} nats",
+                    series.label,
+                    kind.name(),
+                    rmse_without,
+                    before,
+                    nats
+                );
+                out.retracted.push((series.label, kind));
+                continue;
+            }
             out.findings.push(Finding {
                 part: series.label,
                 effect: Some(kind),

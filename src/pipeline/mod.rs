@@ -240,8 +240,8 @@ pub fn fit_update(
 }
 
 /// Model criticism of a fit to `ev` (the evidence of `src`); when it adopts an effect, the effect
-/// joins `effects.adopted` (kept for every later update) and the posterior is refitted with it,
-/// warm-started from `fitted`. Returns the criticism and the refit, if any. Both `bom replay` and
+/// joins `effects.adopted` (kept for later updates while their criticism supports it; one it
+/// retracts leaves) and the posterior is refitted with the new set, warm-started from `fitted`. Returns the criticism and the refit, if any. Both `bom replay` and
 /// `bom node` go through here (the node publishes the fit first, so criticism never delays the
 /// posterior).
 pub fn criticise_update(
@@ -253,8 +253,13 @@ pub fn criticise_update(
 ) -> (Criticism, Option<svi::Fitted>) {
     let criticism = criticism::criticise(ev, &fitted.posterior, &effects.adopted, &cfg.model.dynamics, &cfg.criticism);
     let adopted = criticism.adopted();
-    if adopted.is_empty() {
+    if adopted.is_empty() && criticism.retracted.is_empty() {
         return (criticism, None);
+    }
+    for &(label, kind) in &criticism.retracted {
+        if let Some(set) = effects.adopted.get_mut(&label) {
+            *set = set.without(kind);
+        }
     }
     for (label, kind, limit) in adopted {
         let set = effects.adopted.entry(label).or_default();
