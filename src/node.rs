@@ -481,7 +481,7 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
                 publish_update(&pubs, &u, &cfg, &mut report);
                 if let Some(posterior) = u.posterior {
                     // A posterior that comes with criticism is the refit after an adopted effect.
-                    let what = if u.criticism.is_some() { "refitted posterior (effect adopted)" } else { "posterior" };
+                    let what = if u.criticism.is_some() { "refitted posterior (effects changed by criticism)" } else { "posterior" };
                     tracing::info!(
                         "{what} after {} window(s) published {:.2} s after the window closed (ELBO {:.1})",
                         u.job.windows.len(), u.closed_at.elapsed().as_secs_f64(), posterior.elbo
