@@ -22,7 +22,7 @@
 //!    `unexplained` finding with its residual pattern.
 //! 3. The caller (the pipeline) keeps adopted effects in the model for later windows and refits.
 //!    Each later criticism measures every adopted effect again on all windows so far, and one
-//!    whose removal does not raise the held-out error or the ELBO is retracted ([`Criticism::retracted`]).
+//!    that no longer meets the adoption rule there is retracted ([`Criticism::retracted`]).
 //!
 //! Criticism needs the measured wrench: in kinematic mode it reports nothing.
 
@@ -155,14 +155,16 @@ pub fn criticise(ev: &Evidence, post: &Posterior, adopted: &BTreeMap<u32, Effect
         let before = rmse(&base.held_out);
         let pattern = Pattern::of(&base.held_out);
         out.parts.push(PartCriticism { label: series.label, rmse_m: before, noise_rmse_m: noise_rmse, pattern, residuals: base.held_out.clone() });
-        // Effects adopted earlier: the model without each, on all windows so far. One that no
-        // longer cuts the held-out error, or that the evidence of all windows no longer favours,
-        // is retracted: adoption was decided on fewer windows, and a finding whose error does not
-        // fall is never reported as an effect (issue 25).
+        // Effects adopted earlier: the model without each, on all windows so far. One that all
+        // windows so far no longer support by the adoption rule (a decisive ELBO gain and the
+        // held-out error cut to `max_error_ratio`) is retracted, so that the model's effects
+        // follow from all the evidence and not from the order it came in (the node's earlier
+        // windows are registered against a smaller part model than replay's), and a finding whose
+        // error does not fall is never reported as an effect (issue 25).
         for kind in adopted.get(&series.label).map(|e| e.kinds()).unwrap_or_default() {
             let without = candidate(&series, &ev.times, current.without(kind), &start, dyncfg);
             let (rmse_without, nats) = (rmse(&without.held_out), base.elbo - without.elbo);
-            if rmse_without <= before || nats < 0.0 {
+            if !(nats >= cfg.decisive_nats && before <= cfg.max_error_ratio * rmse_without) {
                 tracing::info!(
                     "part {}: {} adopted earlier is retracted: held-out RMSE {:.4} m without it, {:.4} m with it, {:+.1} nats",
                     series.label,
