@@ -335,12 +335,17 @@ def asset_object(seed):
         door = _site_packages("robosuite") / "models/assets/objects/door_lock.xml"
 
         def build_spec():
-            # Known defect, kept so that the measured corpus can be remade as it was: robosuite
-            # compiles its objects inside a world that sets angles in radians, and loaded alone
-            # (MuJoCo's default, degrees) the door's 0.4 rad range is 0.4 degrees, its latch's
-            # 1.57 rad 1.57 degrees. With radians its latch touches the frame and the recorder
-            # rejects every draw. Both joints of these objects barely move (README).
+            # robosuite compiles its objects inside a world that sets angles in radians; loaded
+            # alone (MuJoCo's default, degrees) the door's 0.4 rad range became 0.4 degrees and
+            # its latch's 1.57 rad 1.57 degrees, so neither joint moved (stops 29-32 measured
+            # that corpus). In radians the latch's tip sits in the frame's post (robosuite's
+            # lock): the lock is an effect this corpus leaves out, so latch and frame do not
+            # collide, and the hinge opens to 1.5 rad instead of robosuite's 0.4 (its range is
+            # a task setting, not the door's: a wider one keeps pushes off the stop).
             spec = mujoco.MjSpec.from_file(str(door))
+            spec.compiler.degree = False
+            spec.joint("hinge").range = [0.0, 1.5]
+            spec.add_exclude(bodyname1="frame", bodyname2="latch")
             # its latch ships with a return spring: an effect this corpus leaves out
             spec.joint("latch_joint").stiffness = [0.0, 0.0, 0.0]
             spec.worldbody.add_light(pos=[0, -1.5, 3], dir=[0, 0.5, -1])

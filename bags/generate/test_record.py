@@ -62,6 +62,16 @@ def main():
         assert not diff, f"corpus object 3: {len(diff)} messages differ"
         print(f"corpus object 3 ({', '.join(desc)}): two runs give {len(msgs_a)} identical messages")
         passed += 1
+        # A robosuite door (corpus object 33): loaded in radians, its hinge and latch move by
+        # tenths of a radian, not the 0.4 and 1.57 degrees of a door_lock.xml read in degrees.
+        so, family, _, interactions = corpus.draw(33)
+        assert family == "robosuite_door", family
+        rec = corpus.record.Recorder(so, {}, 33, 150)
+        rec.record(os.path.join(d, "corpus33.mcap"), interactions, declared=True)
+        assert rec.travel["hinge"] > 0.1 and rec.travel["latch_joint"] > 0.1, f"robosuite door travel {rec.travel}"
+        assert not rec.limits_reached and not rec.parts_touched, (rec.limits_reached, rec.parts_touched)
+        print(f"corpus object 33 (robosuite door): hinge travel {rec.travel['hinge']:.2f} rad, latch {rec.travel['latch_joint']:.2f} rad")
+        passed += 1
     print(f"{passed} passed, 0 failed")
 
 
