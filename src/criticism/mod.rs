@@ -62,6 +62,15 @@ impl Default for CriticismConfig {
     }
 }
 
+impl CriticismConfig {
+    /// The adoption rule: an effect whose ELBO gain over the model without it is `gain_nats` and
+    /// whose held-out RMSE is `with_m` against `without_m` \[m\] is supported when the gain is
+    /// decisive and the error falls to `max_error_ratio`. Adoption and retraction both ask this.
+    pub fn supports(&self, gain_nats: f64, with_m: f64, without_m: f64) -> bool {
+        gain_nats >= self.decisive_nats && with_m <= self.max_error_ratio * without_m
+    }
+}
+
 /// One finding: an effect adopted for a part, or a residual left unexplained.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Finding {
@@ -164,7 +173,7 @@ pub fn criticise(ev: &Evidence, post: &Posterior, adopted: &BTreeMap<u32, Effect
         for kind in adopted.get(&series.label).map(|e| e.kinds()).unwrap_or_default() {
             let without = candidate(&series, &ev.times, current.without(kind), &start, dyncfg);
             let (rmse_without, nats) = (rmse(&without.held_out), base.elbo - without.elbo);
-            if !(nats >= cfg.decisive_nats && before <= cfg.max_error_ratio * rmse_without) {
+            if !cfg.supports(nats, before, rmse_without) {
                 tracing::info!(
                     "part {}: {} adopted earlier is retracted: held-out RMSE {:.4} m without it, {:.4} m with it, {:+.1} nats",
                     series.label,
@@ -225,7 +234,7 @@ pub fn criticise(ev: &Evidence, post: &Posterior, adopted: &BTreeMap<u32, Effect
         let Some((kind, best)) = best else { continue };
         let gain = best.elbo - base.elbo;
         let after = rmse(&best.held_out);
-        if gain >= cfg.decisive_nats && after <= cfg.max_error_ratio * before {
+        if cfg.supports(gain, after, before) {
             let params = effect_params(&series, &best, kind, dyncfg);
             out.findings.push(Finding {
                 part: series.label,

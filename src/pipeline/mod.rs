@@ -242,8 +242,8 @@ pub fn fit_update(
 /// Model criticism of a fit to `ev` (the evidence of `src`); when it adopts an effect, the effect
 /// joins `effects.adopted` (kept for later updates while their criticism supports it; one it
 /// retracts leaves) and the posterior is refitted with the new set, warm-started from `fitted`.
-/// Returns the criticism and the refit, if any. Both `bom replay` and `bom node` go through here (the node publishes the fit first, so criticism never delays the
-/// posterior).
+/// Returns the criticism and the refit, if any. Both `bom replay` and `bom node` go through here
+/// (the node publishes the fit first, so criticism never delays the posterior).
 pub fn criticise_update(
     src: EvidenceSource<'_>,
     ev: &Evidence,
