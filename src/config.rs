@@ -6,6 +6,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use crate::criticism::CriticismConfig;
+use crate::inference::nuts::NutsConfig;
 use crate::inference::svi::SviConfig;
 use crate::input::{InputLimits, Topics};
 use crate::model::ModelConfig;
@@ -25,6 +26,8 @@ pub struct Config {
     pub windows: WindowConfig,
     pub model: ModelConfig,
     pub inference: SviConfig,
+    /// BOM-NUTS after the last SVI posterior (`--inference nuts`; off by default).
+    pub nuts: NutsConfig,
     pub criticism: CriticismConfig,
 }
 

@@ -6,7 +6,8 @@
 //!
 //! Data flows one way, one module per stage:
 //! [`input`] (bags, topics) -> [`perception`] (clouds to part centres and poses) -> [`windows`]
-//! -> [`model`] (priors, tree sampler, physics, effects, likelihood) -> [`inference`] (SVI) ->
+//! -> [`model`] (priors, tree sampler, physics, effects, likelihood, the log density) ->
+//! [`inference`] (SVI, NUTS) ->
 //! [`criticism`] (held-out residuals, missing effects) -> [`output`] (summary table, JSON, ROS
 //! messages, bags, plots). [`pipeline`] wires the stages for
 //! `bom replay`; [`import`] makes bags from articulation track logs.

@@ -25,6 +25,9 @@ struct ReplayInput {
     /// Settings (YAML, or a ROS 2 parameters file with a `bom: ros__parameters:` section).
     #[arg(long)]
     config: Option<PathBuf>,
+    /// Inference: svi (BOM-SVI), or nuts (BOM-NUTS after SVI, on the last update's evidence).
+    #[arg(long, value_enum, default_value = "svi")]
+    inference: InferenceArg,
 }
 
 #[derive(Subcommand)]
@@ -55,6 +58,9 @@ enum Command {
         /// Settings (YAML, or a ROS 2 parameters file with a `bom: ros__parameters:` section).
         #[arg(long)]
         config: Option<PathBuf>,
+        /// Inference: svi (BOM-SVI), or nuts (BOM-NUTS after SVI, on the last update's evidence).
+        #[arg(long, value_enum, default_value = "svi")]
+        inference: InferenceArg,
         /// Write the metrics (JSON) here.
         #[arg(long)]
         json: Option<PathBuf>,
@@ -102,6 +108,12 @@ enum Command {
         #[arg(long, default_value_t = 4)]
         grid: usize,
     },
+}
+
+#[derive(Clone, Copy, PartialEq, clap::ValueEnum)]
+enum InferenceArg {
+    Svi,
+    Nuts,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -165,7 +177,10 @@ fn eval_corpus(corpus: &std::path::Path, split: &str, layout: LayoutArg, jobs: u
 
 /// Load the settings and run the pipeline; a bad configuration exits 2, unusable bags 3.
 fn replay(input: &ReplayInput) -> Result<(pipeline::Run, Config), ExitCode> {
-    let cfg = load_config(input.config.as_ref())?;
+    let mut cfg = load_config(input.config.as_ref())?;
+    if input.inference == InferenceArg::Nuts {
+        cfg.nuts.enabled = true;
+    }
     let run = pipeline::replay(&input.bags, &cfg).map_err(|e| {
         eprintln!("error: {e}");
         ExitCode::from(EXIT_INPUT)
@@ -250,11 +265,11 @@ fn main() -> ExitCode {
         .init();
     let cli = Cli::parse();
     match cli.command {
-        Command::Eval { bags, config, json, baselines, corpus, split, layout, jobs } => {
+        Command::Eval { bags, config, inference, json, baselines, corpus, split, layout, jobs } => {
             if let Some(corpus) = corpus {
                 return eval_corpus(&corpus, &split, layout, jobs, config.as_ref(), json.as_ref());
             }
-            let input = ReplayInput { bags, config };
+            let input = ReplayInput { bags, config, inference };
             let (run, _) = match replay(&input) {
                 Ok(r) => r,
                 Err(code) => return code,

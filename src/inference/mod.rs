@@ -1,12 +1,14 @@
 //! Inference stage: posterior over the Bayesian object model given the evidence (paper §3.4).
 //!
-//! [`svi`] is BOM-SVI with the guide of [`guide`]. Inference is separate from the model
-//! ([`crate::model`]) and returns a [`Posterior`], a summary that later stages (criticism,
+//! [`svi`] is BOM-SVI with the guide of [`guide`]; [`nuts`] is BOM-NUTS on the model's log
+//! density ([`crate::model::density`]) for the structures SVI found. Inference is separate from
+//! the model ([`crate::model`]) and returns a [`Posterior`], a summary that later stages (criticism,
 //! output) read without knowing how it was obtained.
 
 pub mod adam;
 pub mod guide;
 pub mod laplace;
+pub mod nuts;
 pub mod structure;
 pub mod summary;
 pub mod svi;

@@ -22,7 +22,7 @@ use crate::model::tree::max_arborescence;
 use crate::model::{decode, displacement, Displacement, JointType, ModelConfig};
 
 use super::guide::init_block;
-use super::svi::block_pass;
+use crate::model::density::block_pass;
 
 /// The initial structure.
 #[derive(Debug, Clone)]

@@ -120,36 +120,52 @@ fn axis_summary(ev: &Evidence, i: usize, b: &Block, theta: &[f64], model: &Model
     let mean = decode::<f64>(b.joint, &theta[b.mu..b.mu + np], &ev.parts[i].com0, model);
     // The estimate from the guide's draws, the spreads from the same draws widened by the
     // inflation (so that widening never moves the estimate).
-    let (mut dirs, mut points, mut wide_dirs, mut wide_points) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
-    let on_axis = |xi: &[f64]| {
-        let p = decode::<f64>(b.joint, xi, &ev.parts[i].com0, model);
-        let d = if p.direction.dot(&mean.direction) < 0.0 { -p.direction } else { p.direction };
-        (d, p.point + d * (p.com - p.point).dot(&d))
-    };
+    let (mut draws, mut wide) = (Vec::new(), Vec::new());
     for _ in 0..samples.max(2) {
         let e: Vec<f64> = (0..np).map(|_| StandardNormal.sample(rng)).collect();
         let draw = |w: f64| -> Vec<f64> { (0..np).map(|j| theta[b.mu + j] + theta[b.log_s + j].exp() * w * e[j]).collect() };
-        let (d, p) = on_axis(&draw(1.0));
-        dirs.push(d);
-        points.push(p);
-        let (d, p) = on_axis(&draw(widen));
-        wide_dirs.push(d);
-        wide_points.push(p);
+        draws.push(decode::<f64>(b.joint, &draw(1.0), &ev.parts[i].com0, model));
+        wide.push(decode::<f64>(b.joint, &draw(widen), &ev.parts[i].com0, model));
     }
+    axis_from_draws(b.joint, &mean.direction, &draws, &wide)
+}
+
+/// An axis summary from posterior draws of a joint's parameters: the mean direction (draws
+/// flipped onto the side of `reference`) and the mean of the axis points closest to each draw's
+/// centre of mass (revolute) from `draws`; the spreads (RMS angle and distance, 90% quantile of
+/// the angle) from `spread` (the same draws widened, or `draws` itself). Needs at least one draw.
+pub fn axis_from_draws(joint: JointType, reference: &Vector3<f64>, draws: &[JointParams<f64>], spread: &[JointParams<f64>]) -> AxisSummary {
+    let on_axis = |p: &JointParams<f64>| {
+        let d = if p.direction.dot(reference) < 0.0 { -p.direction } else { p.direction };
+        (d, p.point + d * (p.com - p.point).dot(&d))
+    };
+    let (dirs, points): (Vec<Vector3<f64>>, Vec<Vector3<f64>>) = draws.iter().map(on_axis).unzip();
+    let (wide_dirs, wide_points): (Vec<Vector3<f64>>, Vec<Vector3<f64>>) = spread.iter().map(on_axis).unzip();
     let m = dirs.iter().sum::<Vector3<f64>>();
     let dir = m / m.norm();
     let mut angles: Vec<f64> = wide_dirs.iter().map(|d| d.dot(&dir).clamp(-1.0, 1.0).acos().to_degrees()).collect();
     let sd_deg = (angles.iter().map(|a| a * a).sum::<f64>() / angles.len() as f64).sqrt();
     angles.sort_by(|a, b| a.total_cmp(b));
     let q90 = angles[((angles.len() - 1) as f64 * 0.9).round() as usize];
-    let (point, point_sd) = if b.joint == JointType::Revolute {
+    let (point, point_sd) = if joint == JointType::Revolute {
         let pm = points.iter().sum::<Vector3<f64>>() / points.len() as f64;
         let sd = (wide_points.iter().map(|p| (p - pm).norm_squared()).sum::<f64>() / wide_points.len() as f64).sqrt();
         (Some(pm), sd)
     } else {
         (None, f64::NAN)
     };
-    AxisSummary { joint: b.joint, direction: dir, direction_sd_deg: sd_deg, direction_q90_deg: q90, point, point_sd_m: point_sd }
+    AxisSummary { joint, direction: dir, direction_sd_deg: sd_deg, direction_q90_deg: q90, point, point_sd_m: point_sd }
+}
+
+/// Median, standard deviation and 5% / 95% quantiles of draws of a scalar (at least one; NaNs
+/// sort last).
+pub fn estimate_from_draws(v: &[f64]) -> Estimate {
+    let mut v = v.to_vec();
+    v.sort_by(|a, b| a.total_cmp(b));
+    let q = |p: f64| v[((v.len() - 1) as f64 * p).round() as usize];
+    let mean = v.iter().sum::<f64>() / v.len() as f64;
+    let sd = (v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (v.len() as f64 - 1.0).max(1.0)).sqrt();
+    Estimate { median: q(0.5), sd, q05: q(0.05), q95: q(0.95) }
 }
 
 #[cfg(test)]

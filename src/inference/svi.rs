@@ -43,8 +43,7 @@
 
 use std::time::Instant;
 
-use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
-use num_dual::DualSVec64;
+use nalgebra::{DMatrix, DVector, Vector3};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Gumbel, StandardNormal};
@@ -56,13 +55,11 @@ use super::laplace;
 use super::structure;
 use super::summary::{self, softmax};
 use super::Posterior;
-use crate::model::dynamics::{self, JointInWindow, SubtreeBody};
+use crate::model::density::{block_pass, inverse, part_transforms, physics_prior, pre_transforms, subtree_members, PartValue};
+use crate::model::dynamics;
 use crate::model::likelihood::{coordinate_prior, log_likelihood_position, log_likelihood_rotation, Evidence};
-use crate::model::{decode, displacement, mat_mul, tree, Displacement, JointParams, JointType, ModelConfig};
+use crate::model::{decode, displacement, tree, Displacement, JointParams, ModelConfig};
 
-/// Dual number with enough directions for the largest joint (11 parameters) plus one coordinate.
-type D = DualSVec64<12>;
-const Q_SLOT: usize = crate::model::revolute::NUM_PARAMS;
 
 /// SVI settings (`inference` section of the config).
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -172,71 +169,6 @@ struct BlockSample {
     kd: Option<(Vec<f64>, Vec<f64>)>,
 }
 
-/// A descendant of the part being differentiated, expressed relative to that part's frame.
-pub(crate) struct Member {
-    /// Part index.
-    m: usize,
-    /// Centre of mass per frame relative to the part's displacement (f64).
-    z: Vec<Vector3<f64>>,
-    /// Rotation per frame relative to the part's displacement.
-    r: Vec<Matrix3<f64>>,
-    sigma: f64,
-    rot_sigma: f64,
-}
-
-/// Log-likelihood of a part's subtree with part `i` under joint type `joint` and its gradient with
-/// respect to that block's standardised parameters and coordinates, from dual numbers.
-///
-/// `pre[t]` is the parent's displacement at frame `t`; `subtree` the descendants relative to
-/// part `i`'s frame. Rotations, where observable, add their likelihood.
-#[allow(clippy::too_many_arguments)]
-pub(crate) fn block_pass(
-    ev: &Evidence,
-    i: usize,
-    joint: JointType,
-    xi: &[f64],
-    q: &[f64],
-    pre: &[Displacement<f64>],
-    subtree: &[Member],
-    cfg: &ModelConfig,
-) -> (f64, Vec<f64>, Vec<f64>) {
-    let np = joint.num_params();
-    let xid: Vec<D> = xi.iter().enumerate().map(|(j, &x)| D::from_re(x).derivative(j)).collect();
-    let p = decode(joint, &xid, &ev.parts[i].com0, cfg);
-    let (mut l, mut gx, mut gq) = (0.0, vec![0.0; np], vec![0.0; ev.len()]);
-    for t in 0..ev.len() {
-        let own_obs = &ev.parts[i].obs[t];
-        let any_sub = subtree.iter().any(|mb| ev.parts[mb.m].obs[t].is_some());
-        if own_obs.is_none() && !any_sub {
-            continue;
-        }
-        let qt = if joint.movable() { D::from_re(q[t]).derivative(Q_SLOT) } else { D::from_re(q[t]) };
-        let s = pre[t].compose_lifted(&displacement(&p, qt));
-        let mut ll = D::from_re(0.0);
-        if let Some(o) = own_obs {
-            ll += log_likelihood_position(o, &s.apply(&p.com), p.noise, cfg.student_nu);
-        }
-        if let Some(o) = &ev.parts[i].rot[t] {
-            ll += log_likelihood_rotation(o, &s.r, p.rot_noise, cfg.student_nu);
-        }
-        for mb in subtree {
-            if let Some(o) = &ev.parts[mb.m].obs[t] {
-                ll += log_likelihood_position(o, &s.apply_const(&mb.z[t]), D::from(mb.sigma), cfg.student_nu);
-            }
-            if let Some(o) = &ev.parts[mb.m].rot[t] {
-                ll += log_likelihood_rotation(o, &mat_mul(&s.r, &mb.r[t]), D::from(mb.rot_sigma), cfg.student_nu);
-            }
-        }
-        l += ll.re;
-        if let Some(e) = ll.eps.0 {
-            for j in 0..np {
-                gx[j] += e[j];
-            }
-            gq[t] = e[Q_SLOT];
-        }
-    }
-    (l, gx, gq)
-}
 
 /// `sum_k q_k a_k + H(q)` for `q = softmax(l)`: the part of the ELBO that a categorical factor
 /// contributes when `a_k` is `log p(k)` plus the conditional ELBO of choice `k`.
@@ -247,14 +179,11 @@ fn categorical_elbo(l: &[f64], a: &[f64]) -> f64 {
     abar + h
 }
 
-/// Transform of every part at every frame for a tree and per-part selected samples.
-fn part_transforms(parent: &[usize], chosen: &[&BlockSample], frames: usize) -> Vec<Vec<Displacement<f64>>> {
-    tree::part_transforms(parent, frames, |i, t| displacement(&chosen[i].params, chosen[i].q[t]))
-}
-
-fn inverse(d: &Displacement<f64>) -> Displacement<f64> {
-    let rt = d.r.transpose();
-    Displacement { r: rt, t: -(rt * d.t) }
+impl BlockSample {
+    /// The sample as the model's part value.
+    fn value(&self) -> PartValue<'_> {
+        PartValue { params: &self.params, q: &self.q, kd: self.kd.as_ref().map(|(_, x)| x.as_slice()) }
+    }
 }
 
 fn sample_block(ev: &Evidence, i: usize, b: &Block, theta: &[f64], model: &ModelConfig, rng: &mut ChaCha8Rng) -> BlockSample {
@@ -352,10 +281,10 @@ fn laplace_kinodynamics(
     let n = ev.parts.len();
     let k_frames = ev.len();
     let means: Vec<Vec<BlockSample>> = (0..n).map(|i| layout.blocks[i].iter().map(|b| mean_block(ev, i, b, theta, model)).collect()).collect();
-    let chosen: Vec<&BlockSample> = (0..n).map(|i| &means[i][types[i]]).collect();
+    let chosen: Vec<PartValue<'_>> = (0..n).map(|i| means[i][types[i]].value()).collect();
     let transforms = part_transforms(parent, &chosen, k_frames);
     for i in 0..n {
-        let pre = if parent[i] == 0 { vec![Displacement::identity(); k_frames] } else { transforms[parent[i] - 1].clone() };
+        let pre = pre_transforms(parent, i, &transforms, k_frames);
         let desc = tree::descendants(parent, i);
         for b in &layout.blocks[i] {
             let Some(kd) = b.kd else { continue };
@@ -372,7 +301,7 @@ fn laplace_kinodynamics(
             // Log posterior of the block (physics prior + N(0, I)) and its gradient.
             let mut post = |xi: &[f64]| {
                 s.kd = Some((vec![0.0; kd.dim], xi.to_vec()));
-                let (l, g, _) = dynamics_pass(ev, i, &s, observed.as_ref(), &pre, &desc, &chosen, &transforms, model, false, None);
+                let (l, g, _) = physics_prior(ev, i, &s.value(), observed.as_ref(), &pre, &desc, &chosen, &transforms, model, false, None);
                 let l = l - 0.5 * xi.iter().map(|x| x * x).sum::<f64>();
                 let g: Vec<f64> = g.iter().zip(xi).map(|(g, x)| g - x).collect();
                 (l, g)
@@ -393,7 +322,7 @@ fn laplace_kinodynamics(
             let neg_h = -laplace::hessian(&mut post, &x);
             s.kd = Some((vec![0.0; kd.dim], x.clone()));
             let mut scores = Vec::new();
-            let (_, _, gq) = dynamics_pass(ev, i, &s, observed.as_ref(), &pre, &desc, &chosen, &transforms, model, false, Some(&mut scores));
+            let (_, _, gq) = physics_prior(ev, i, &s.value(), observed.as_ref(), &pre, &desc, &chosen, &transforms, model, false, Some(&mut scores));
             let (ar1, robust) = (variance_inflation(ev, &gq), cluster_inflation(&neg_h, &scores));
             tracing::debug!("part {} {:?}: variance inflation AR(1) {ar1:.2}, window-robust {robust:.2}", ev.parts[i].label, b.joint);
             inflation[i][b.joint.index()] = ar1.max(robust);
@@ -438,7 +367,7 @@ fn position_inflation(ev: &Evidence, i: usize, s: &BlockSample, pre: &[Displacem
 /// sandwich `P^-1 (G / (G - 1) sum_w g_w g_w^T + I) P^-1`, with `P = H + I` the negative Hessian
 /// `neg_h` of the block's log posterior at the mode (`H` the physics prior's, `I` the
 /// standard-normal prior's) and `g_w` the physics prior's score of each of the `G` windows that
-/// simulate the joint (`scores`, from [`dynamics_pass`]).
+/// simulate the joint (`scores`, from [`physics_prior`]).
 ///
 /// Why: where the physics misses something the bags' simulator has, the deviations are not only
 /// correlated within a window (which [`variance_inflation`] allows for) but biased the same way
@@ -544,109 +473,6 @@ fn lag1_autocorrelation(series: &[Vec<f64>]) -> Option<f64> {
     (n >= 8 && a > 0.0 && b > 0.0).then(|| num / (a * b).sqrt())
 }
 
-/// The physics prior of block `k` of part `i` over all windows (dynamic mode) and its gradients:
-/// `(log prior, d/d xi_kd, d/d q_t per grid frame)`. `robust`: each window's physics prior made
-/// robust to windows it cannot explain ([`dynamics::robust_window_prior`]) — in the ELBO's
-/// iterations, which decide the tree and the joint types; the Laplace fits of the kinodynamic
-/// factors (the guide's and the reported ones) use the plain physics prior, so that a window the
-/// physics misses widens their intervals (the window-robust inflation) instead of dropping out of
-/// them. With `scores`, also each window's share of
-/// `d/d xi_kd` (one entry per window, the rest term before a window counted in it; zero on damping
-/// and friction where the window does not simulate the joint).
-#[allow(clippy::too_many_arguments)]
-fn dynamics_pass(
-    ev: &Evidence,
-    i: usize,
-    s: &BlockSample,
-    observed: Option<&dynamics::Observed>,
-    pre: &[Displacement<f64>],
-    desc: &[usize],
-    chosen: &[&BlockSample],
-    transforms: &[Vec<Displacement<f64>>],
-    model: &ModelConfig,
-    robust: bool,
-    mut scores: Option<&mut Vec<Vec<f64>>>,
-) -> (f64, Vec<f64>, Vec<f64>) {
-    let Some((_, xi)) = &s.kd else { return (0.0, vec![], vec![]) };
-    let dyncfg = &model.dynamics;
-    let (mut l, mut gx, mut gq) = (0.0, vec![0.0; xi.len()], vec![0.0; ev.len()]);
-    if let Some(sc) = scores.as_deref_mut() {
-        sc.clear();
-    }
-    // The deviation scale, also that of a joint at rest between windows and at rest frames.
-    let rest_sd = dynamics::decode::<f64>(s.params.joint, xi, &ev.effects[i], dyncfg).deviation;
-    for (w, win) in ev.windows.iter().enumerate() {
-        let gx_before = scores.is_some().then(|| gx.clone());
-        // Between windows no force acts: the joint rests where the last window left it, up to
-        // the same deviation scale — while the object is watched (not across separate episodes).
-        if w > 0 && win.continues {
-            let (a, b) = (ev.windows[w - 1].frames[ev.windows[w - 1].frames.len() - 1], win.frames[0]);
-            l += rest_term(&s.q, a, b, rest_sd, dyncfg.deviation_log_sd, &mut gq, &mut gx[3]);
-        }
-        // After the window the joint rests where the physics window left it (rest frames).
-        if let Some(&a) = win.frames.last() {
-            for &b in &win.rest {
-                l += rest_term(&s.q, a, b, rest_sd, dyncfg.deviation_log_sd, &mut gq, &mut gx[3]);
-            }
-        }
-        let f0 = win.frames[0];
-        // The joint and the child at the window's start, moved by the parent's displacement.
-        let own = pre[f0].compose(&displacement(&s.params, s.q[f0]));
-        let mut joint = s.params;
-        joint.direction = pre[f0].r * s.params.direction;
-        joint.point = pre[f0].apply(&s.params.point);
-        let rotate = |d: &Displacement<f64>, u: &Matrix3<f64>| d.r * u * d.r.transpose();
-        let subtree: Vec<SubtreeBody> = desc
-            .iter()
-            .map(|&m| SubtreeBody {
-                mass: chosen[m]
-                    .kd
-                    .as_ref()
-                    .map(|(_, x)| dynamics::decode::<f64>(chosen[m].params.joint, x, &ev.effects[m], dyncfg).mass)
-                    .unwrap_or(dyncfg.mass_median_kg),
-                com: transforms[m][f0].apply(&chosen[m].params.com),
-                unit_inertia: rotate(&transforms[m][f0], &ev.parts[m].unit_inertia),
-            })
-            .collect();
-        let pushed = win.pushed.is_some_and(|p| p == i || desc.contains(&p));
-        let jw = JointInWindow {
-            joint: &joint,
-            com: own.apply(&s.params.com),
-            unit_inertia: rotate(&own, &ev.parts[i].unit_inertia),
-            subtree,
-            pushed,
-            effects: ev.effects[i],
-        };
-        let (lw, gxw, gqw) = if robust {
-            let (l, gx, gq, _) = dynamics::robust_window_prior(&jw, win, &s.q, observed, xi, dyncfg, model.velocity_sd_mps);
-            (l, gx, gq)
-        } else {
-            dynamics::window_prior(&jw, win, &s.q, observed, xi, dyncfg)
-        };
-        l += lw;
-        for (a, b) in gx.iter_mut().zip(&gxw) {
-            *a += b;
-        }
-        for (k, &t) in win.frames.iter().enumerate() {
-            gq[t] += gqw[k];
-        }
-        if let (Some(sc), Some(before)) = (scores.as_deref_mut(), &gx_before) {
-            sc.push(gx.iter().zip(before).map(|(a, b)| a - b).collect());
-        }
-    }
-    (l, gx, gq)
-}
-
-/// `log N(q_b; q_a, sd^2)`, a joint resting at `q_a` while no force acts (between windows, and
-/// at rest frames), with its gradients added to `gq` (coordinates) and `g_dev` (the deviation's
-/// standardised parameter, whose log-normal has log-sd `deviation_log_sd`).
-fn rest_term(q: &[f64], a: usize, b: usize, sd: f64, deviation_log_sd: f64, gq: &mut [f64], g_dev: &mut f64) -> f64 {
-    let d = q[b] - q[a];
-    gq[b] -= d / (sd * sd);
-    gq[a] += d / (sd * sd);
-    *g_dev += (d * d / (sd * sd) - 1.0) * deviation_log_sd;
-    -(d * d) / (2.0 * sd * sd) - (sd * (2.0 * std::f64::consts::PI).sqrt()).ln()
-}
 
 /// The result of a fit: the posterior summary and the guide, to warm-start the next fit.
 #[derive(Debug, Clone)]
@@ -854,26 +680,15 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
                 .collect();
             let samples: Vec<Vec<BlockSample>> =
                 (0..n).map(|i| layout.blocks[i].iter().map(|b| sample_block(ev, i, b, &theta, model, &mut rng)).collect()).collect();
-            let chosen: Vec<&BlockSample> = (0..n).map(|i| &samples[i][chosen_type[i]]).collect();
+            let chosen: Vec<PartValue<'_>> = (0..n).map(|i| samples[i][chosen_type[i]].value()).collect();
             let transforms = part_transforms(&g_tree.parent, &chosen, k_frames);
             let positions: Vec<Vec<Vector3<f64>>> =
                 (0..n).map(|m| (0..k_frames).map(|t| transforms[m][t].apply(&chosen[m].params.com)).collect()).collect();
 
             for i in 0..n {
-                let pre: Vec<Displacement<f64>> =
-                    if g_tree.parent[i] == 0 { vec![Displacement::identity(); k_frames] } else { transforms[g_tree.parent[i] - 1].clone() };
+                let pre = pre_transforms(&g_tree.parent, i, &transforms, k_frames);
                 let desc = tree::descendants(&g_tree.parent, i);
-                let inv: Vec<Displacement<f64>> = (0..k_frames).map(|t| inverse(&transforms[i][t])).collect();
-                let subtree: Vec<Member> = desc
-                    .iter()
-                    .map(|&m| Member {
-                        m,
-                        z: (0..k_frames).map(|t| inv[t].apply(&positions[m][t])).collect(),
-                        r: (0..k_frames).map(|t| inv[t].r * transforms[m][t].r).collect(),
-                        sigma: chosen[m].params.noise,
-                        rot_sigma: chosen[m].params.rot_noise,
-                    })
-                    .collect();
+                let subtree = subtree_members(&g_tree.parent, i, &transforms, &positions, &chosen);
                 for (k, b) in layout.blocks[i].iter().enumerate() {
                     let s = &samples[i][k];
                     let (l, gx, mut gq) = block_pass(ev, i, b.joint, &s.xi, &s.q, &pre, &subtree, model);
@@ -883,7 +698,7 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Gu
                         f_parts[i][k][1] += pw * analytic[i][k];
                     }
                     if let (Some(kd), Some((eps, _))) = (b.kd, &s.kd) {
-                        let (ld, gkd, gqd) = dynamics_pass(ev, i, s, None, &pre, &desc, &chosen, &transforms, model, true, None);
+                        let (ld, gkd, gqd) = physics_prior(ev, i, &s.value(), None, &pre, &desc, &chosen, &transforms, model, true, None);
                         f += ld;
                         if final_left.is_some() {
                             f_parts[i][k][2] += pw * ld;
@@ -1107,6 +922,8 @@ fn recentre(logits: &mut [f64], idx: &[usize]) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::model::JointType;
+    use nalgebra::Matrix3;
     use crate::model::likelihood::{PartSeries, PositionObs, RotationObs};
 
     /// The lag-1 autocorrelation of AR(1) series of the length of a window's deviations is

@@ -14,6 +14,7 @@
 //! code runs on `f64` and on `num-dual` dual numbers (tests check the gradients against finite
 //! differences).
 
+pub mod density;
 pub mod dynamics;
 pub mod effects;
 pub mod likelihood;

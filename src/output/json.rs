@@ -6,6 +6,7 @@ use serde::Serialize;
 
 use crate::criticism::Finding;
 
+use crate::inference::nuts::SamplerReport;
 use crate::inference::Posterior;
 use crate::pipeline::Run;
 
@@ -60,11 +61,65 @@ pub struct JointJson {
 
 #[derive(Debug, Serialize)]
 pub struct ModelJson {
+    /// `svi` or `nuts`.
     pub inference: String,
     pub runtime_s: f64,
     pub elbo: f64,
     pub iterations: usize,
     pub joints: Vec<JointJson>,
+    /// BOM-NUTS's diagnostics (contract section 5), with `inference` `nuts`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sampler: Option<SamplerJson>,
+}
+
+/// `model.sampler` (contract section 5): chains, sampling draws per chain, the largest R-hat and
+/// least bulk ESS over the reported parameters, divergent draws, NUTS's own wall time \[s\]; also
+/// the structures sampled (tree as parent labels, joint types) with their weights.
+#[derive(Debug, Serialize)]
+pub struct SamplerJson {
+    pub chains: usize,
+    pub draws: u64,
+    pub r_hat_max: Option<f64>,
+    pub ess_bulk_min: Option<f64>,
+    pub divergences: u64,
+    pub runtime_s: f64,
+    pub structure_mass: f64,
+    pub structures: Vec<StructureJson>,
+    pub warnings: Vec<String>,
+}
+
+/// One structure NUTS conditioned on.
+#[derive(Debug, Serialize)]
+pub struct StructureJson {
+    /// Part label -> parent label (0 the fixed frame).
+    pub parents: BTreeMap<String, u32>,
+    /// Part label -> joint type.
+    pub types: BTreeMap<String, String>,
+    pub weight: f64,
+}
+
+fn sampler_json(run: &Run, s: &SamplerReport) -> SamplerJson {
+    let labels: Vec<u32> = run.posterior.as_ref().map(|p| p.joints.iter().map(|j| j.child).collect()).unwrap_or_default();
+    let label = |node: usize| if node == 0 { 0 } else { labels.get(node - 1).copied().unwrap_or(0) };
+    SamplerJson {
+        chains: s.chains,
+        draws: s.draws,
+        r_hat_max: finite(s.r_hat_max),
+        ess_bulk_min: finite(s.ess_bulk_min),
+        divergences: s.divergences,
+        runtime_s: s.runtime_s,
+        structure_mass: s.structure_mass,
+        structures: s
+            .structures
+            .iter()
+            .map(|(st, w)| StructureJson {
+                parents: st.parent.iter().enumerate().map(|(i, &p)| (labels.get(i).copied().unwrap_or(0).to_string(), label(p))).collect(),
+                types: st.types.iter().enumerate().map(|(i, t)| (labels.get(i).copied().unwrap_or(0).to_string(), t.name().to_string())).collect(),
+                weight: *w,
+            })
+            .collect(),
+        warnings: s.warnings.clone(),
+    }
 }
 
 /// One finding of model criticism (contract section 5, `criticism`).
@@ -146,7 +201,7 @@ pub fn model_json(p: &Posterior) -> ModelJson {
             mass: j.kinodynamics.as_ref().filter(|_| j.map_type.movable()).map(|k| estimate(&k.mass)),
         })
         .collect();
-    ModelJson { inference: "svi".into(), runtime_s: p.runtime_s, elbo: p.elbo, iterations: p.iterations, joints }
+    ModelJson { inference: "svi".into(), runtime_s: p.runtime_s, elbo: p.elbo, iterations: p.iterations, joints, sampler: None }
 }
 
 /// Build the summary of a replay.
@@ -165,7 +220,14 @@ pub fn summary(run: &Run) -> Summary {
             .iter()
             .map(|w| WindowJson { start_s: w.start, end_s: w.end, pushed_part: w.pushed_part })
             .collect(),
-        model: run.posterior.as_ref().map(model_json),
+        model: run.posterior.as_ref().map(|p| {
+            let mut m = model_json(p);
+            if let Some(s) = &run.sampler {
+                m.inference = "nuts".into();
+                m.sampler = Some(sampler_json(run, s));
+            }
+            m
+        }),
         criticism: run.findings.iter().map(finding_json).collect(),
         residuals: run
             .updates

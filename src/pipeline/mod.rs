@@ -16,6 +16,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use crate::config::Config;
 use crate::diagnostics::Diagnostics;
 use crate::criticism::{self, Criticism, Finding};
+use crate::inference::nuts::{self, SamplerReport};
 use crate::inference::{svi, Posterior};
 use crate::input::{self, CloudFrame, GroundTruth, InputError, Recording, WrenchSample};
 use crate::model::effects::{EffectKind, EffectSet, LimitSpec};
@@ -89,6 +90,16 @@ pub struct Run {
     pub ground_truth: Option<GroundTruth>,
     pub diagnostics: Diagnostics,
     pub timing: Timing,
+    /// BOM-NUTS's diagnostics when it gave the posterior (`nuts.enabled`).
+    pub sampler: Option<SamplerReport>,
+    /// The measured wrenches (all bags), for evidence rebuilt after the run ([`final_evidence`]).
+    pub wrenches: Vec<WrenchSample>,
+}
+
+/// The evidence of the last update of `run`: all windows, the model's final effects.
+pub fn final_evidence(run: &Run, cfg: &Config) -> Evidence {
+    let src = EvidenceSource { tracks: &run.tracks, geometry: &run.geometry, windows: &run.windows, wrenches: &run.wrenches };
+    Evidence::new(src.tracks, src.geometry, src.windows, src.wrenches, &run.effects, &grid(cfg))
 }
 
 fn progress(msg: &str) -> ProgressBar {
@@ -168,9 +179,28 @@ pub fn replay(bags: &[PathBuf], cfg: &Config) -> Result<Run, ReplayError> {
             points_per_frame: obs.iter().map(|o| o.points as f64).sum::<f64>() / obs.len().max(1) as f64,
         })
         .collect();
-    let posterior = updates.last().map(|u| u.posterior.clone());
+    let mut posterior = updates.last().map(|u| u.posterior.clone());
+    let mut sampler = None;
+    if let (true, Some(post), Some(guide)) = (cfg.nuts.enabled, posterior.as_ref(), warm) {
+        // BOM-NUTS on the last update's evidence (all windows, the final effects), from its SVI fit.
+        let t = Instant::now();
+        let src = EvidenceSource { tracks: &tracks, geometry: &geometry, windows: &windows, wrenches: &recording.wrenches };
+        let ev = src.evidence(&effects, cfg);
+        let svi_fit = svi::Fitted { posterior: post.clone(), guide };
+        match nuts::sample(&ev, &cfg.model, &svi_fit, &cfg.nuts) {
+            Ok((p, report)) => {
+                for w in &report.warnings {
+                    tracing::warn!("{w}");
+                }
+                posterior = Some(p);
+                sampler = Some(report);
+            }
+            Err(e) => tracing::error!("NUTS failed: {e}; the posterior is SVI's"),
+        }
+        timing.inference += t.elapsed();
+    }
     timing.total = t0.elapsed();
-    Ok(Run { bags: bags.to_vec(), mode, parts, windows, tracks, geometry, updates, posterior, findings, effects: effects.all(), ground_truth, diagnostics: diag, timing })
+    Ok(Run { bags: bags.to_vec(), mode, parts, windows, tracks, geometry, updates, posterior, findings, effects: effects.all(), ground_truth, diagnostics: diag, timing, sampler, wrenches: recording.wrenches })
 }
 
 /// The effects of the model, per part label: declared by the recording, and adopted by model

@@ -1,0 +1,533 @@
+//! The model as one log density (issue 26): for a fixed *structure* — the tree and every part's
+//! joint type, with the declared and adopted effects of the evidence — the unnormalised log
+//! posterior of all continuous latents and its gradient, the interface that inference
+//! algorithms consume (as `CpuLogpFunc` in nuts-rs, or a Pyro model's `log_density`).
+//!
+//! The terms are the paper's generative model (§3.2-3.4):
+//! - the likelihood of every observed part pose (eq. 2, Student-t positions and rotations,
+//!   [`crate::model::likelihood`]) through the chain of screw displacements of the tree
+//!   ([`block_pass`], the part's subtree moving with it);
+//! - `N(0, I)` priors on every standardised parameter: kinematic ([`crate::model::decode`]:
+//!   reference centre of mass, noise levels, screw axis), kinodynamic
+//!   ([`crate::model::dynamics::decode`]: damping, friction, mass, deviation, effects) and, in
+//!   kinematic mode, the coordinates' velocity scale;
+//! - the prior of the joint coordinates: kinematic mode, the random walk of
+//!   [`crate::model::likelihood::coordinate_prior`]; dynamic mode, window starts
+//!   `N(0, window_start_sd_m^2)`, the physics prior of each window made robust to windows it
+//!   cannot explain, and the rests between and after windows ([`physics_prior`]).
+//!
+//! The latents are unconstrained already: the priors are defined on the standardised
+//! parameters (decoding to physical units is part of the model, not a change of variables), and
+//! coordinates are metres of path, so no Jacobian enters. [`Density::log_density`] is exact; its
+//! gradient is exact for the likelihood and the coordinate priors (dual numbers through the model
+//! code) and takes the physics prior's dependence on the kinematic parameters (axis, centre of
+//! mass; a parent's axis moving a child's joint) and on a child's kinodynamics (its mass) by
+//! forward differences — the physics code's dual numbers carry only a part's own kinodynamics and
+//! coordinates. Left out: a nested joint's physics through its parent's or children's
+//! *coordinates*. A gradient that is not exactly the density's keeps Hamiltonian Monte Carlo exact
+//! (leapfrog steps stay volume-preserving and reversible, and acceptance uses the exact
+//! density) and only costs it step size.
+//! SVI's conditional ELBOs are expectations of the same terms under its guide
+//! ([`crate::inference::svi`]).
+
+use nalgebra::{Matrix3, Vector3};
+use num_dual::DualSVec64;
+
+use crate::model::dynamics::{self, JointInWindow, SubtreeBody};
+use crate::model::likelihood::{coordinate_prior, log_likelihood_position, log_likelihood_rotation, Evidence};
+use crate::model::{decode, displacement, mat_mul, tree, Displacement, JointParams, JointType, ModelConfig};
+
+/// Dual number with enough directions for the largest joint (11 parameters) plus one coordinate.
+type D = DualSVec64<12>;
+const Q_SLOT: usize = crate::model::revolute::NUM_PARAMS;
+
+/// One part's values: decoded kinematic parameters, joint coordinates on the evidence grid
+/// \[m of path; zeros for a rigid joint\], and standardised kinodynamic parameters (dynamic mode,
+/// movable joints).
+#[derive(Debug, Clone, Copy)]
+pub struct PartValue<'a> {
+    pub params: &'a JointParams<f64>,
+    pub q: &'a [f64],
+    pub kd: Option<&'a [f64]>,
+}
+
+/// Transform of every part at every grid frame for a tree (`parent[i]`: 0 the fixed frame,
+/// `j + 1` part `j`) and per-part values.
+pub fn part_transforms(parent: &[usize], values: &[PartValue<'_>], frames: usize) -> Vec<Vec<Displacement<f64>>> {
+    tree::part_transforms(parent, frames, |i, t| displacement(values[i].params, values[i].q[t]))
+}
+
+/// The inverse rigid displacement.
+pub fn inverse(d: &Displacement<f64>) -> Displacement<f64> {
+    let rt = d.r.transpose();
+    Displacement { r: rt, t: -(rt * d.t) }
+}
+
+/// The descendants of part `i` under `parent`, each relative to part `i`'s frame at every grid
+/// frame (for [`block_pass`]); `transforms` from [`part_transforms`], `positions[m][t]` the centre
+/// of mass of part `m` at frame `t` (fixed frame).
+pub fn subtree_members(
+    parent: &[usize],
+    i: usize,
+    transforms: &[Vec<Displacement<f64>>],
+    positions: &[Vec<Vector3<f64>>],
+    values: &[PartValue<'_>],
+) -> Vec<Member> {
+    let frames = transforms.first().map_or(0, Vec::len);
+    let inv: Vec<Displacement<f64>> = (0..frames).map(|t| inverse(&transforms[i][t])).collect();
+    tree::descendants(parent, i)
+        .into_iter()
+        .map(|m| Member {
+            m,
+            z: (0..frames).map(|t| inv[t].apply(&positions[m][t])).collect(),
+            r: (0..frames).map(|t| inv[t].r * transforms[m][t].r).collect(),
+            sigma: values[m].params.noise,
+            rot_sigma: values[m].params.rot_noise,
+        })
+        .collect()
+}
+
+/// A descendant of the part being differentiated, expressed relative to that part's frame.
+pub struct Member {
+    /// Part index.
+    pub m: usize,
+    /// Centre of mass per frame relative to the part's displacement (f64).
+    pub z: Vec<Vector3<f64>>,
+    /// Rotation per frame relative to the part's displacement.
+    pub r: Vec<Matrix3<f64>>,
+    /// Position and rotation noise of the member's likelihood (its own sampled values).
+    pub sigma: f64,
+    pub rot_sigma: f64,
+}
+
+/// Log-likelihood of a part's subtree with part `i` under joint type `joint` and its gradient with
+/// respect to that block's standardised parameters and coordinates, from dual numbers.
+///
+/// `pre[t]` is the parent's displacement at frame `t`; `subtree` the descendants relative to
+/// part `i`'s frame. Rotations, where observable, add their likelihood.
+#[allow(clippy::too_many_arguments)]
+pub fn block_pass(
+    ev: &Evidence,
+    i: usize,
+    joint: JointType,
+    xi: &[f64],
+    q: &[f64],
+    pre: &[Displacement<f64>],
+    subtree: &[Member],
+    cfg: &ModelConfig,
+) -> (f64, Vec<f64>, Vec<f64>) {
+    let np = joint.num_params();
+    let xid: Vec<D> = xi.iter().enumerate().map(|(j, &x)| D::from_re(x).derivative(j)).collect();
+    let p = decode(joint, &xid, &ev.parts[i].com0, cfg);
+    let (mut l, mut gx, mut gq) = (0.0, vec![0.0; np], vec![0.0; ev.len()]);
+    for t in 0..ev.len() {
+        let own_obs = &ev.parts[i].obs[t];
+        let any_sub = subtree.iter().any(|mb| ev.parts[mb.m].obs[t].is_some());
+        if own_obs.is_none() && !any_sub {
+            continue;
+        }
+        let qt = if joint.movable() { D::from_re(q[t]).derivative(Q_SLOT) } else { D::from_re(q[t]) };
+        let s = pre[t].compose_lifted(&displacement(&p, qt));
+        let mut ll = D::from_re(0.0);
+        if let Some(o) = own_obs {
+            ll += log_likelihood_position(o, &s.apply(&p.com), p.noise, cfg.student_nu);
+        }
+        if let Some(o) = &ev.parts[i].rot[t] {
+            ll += log_likelihood_rotation(o, &s.r, p.rot_noise, cfg.student_nu);
+        }
+        for mb in subtree {
+            if let Some(o) = &ev.parts[mb.m].obs[t] {
+                ll += log_likelihood_position(o, &s.apply_const(&mb.z[t]), D::from(mb.sigma), cfg.student_nu);
+            }
+            if let Some(o) = &ev.parts[mb.m].rot[t] {
+                ll += log_likelihood_rotation(o, &mat_mul(&s.r, &mb.r[t]), D::from(mb.rot_sigma), cfg.student_nu);
+            }
+        }
+        l += ll.re;
+        if let Some(e) = ll.eps.0 {
+            for j in 0..np {
+                gx[j] += e[j];
+            }
+            gq[t] = e[Q_SLOT];
+        }
+    }
+    (l, gx, gq)
+}
+
+/// The physics prior of part `i` (value `s`) over all windows (dynamic mode) and its gradients:
+/// `(log prior, d/d xi_kd, d/d q_t per grid frame)`. `robust`: each window's physics prior made
+/// robust to windows it cannot explain ([`dynamics::robust_window_prior`]) — in the ELBO's
+/// iterations, which decide the tree and the joint types; the Laplace fits of the kinodynamic
+/// factors (the guide's and the reported ones) use the plain physics prior, so that a window the
+/// physics misses widens their intervals (the window-robust inflation) instead of dropping out of
+/// them. With `scores`, also each window's share of
+/// `d/d xi_kd` (one entry per window, the rest term before a window counted in it; zero on damping
+/// and friction where the window does not simulate the joint).
+#[allow(clippy::too_many_arguments)]
+pub fn physics_prior(
+    ev: &Evidence,
+    i: usize,
+    s: &PartValue<'_>,
+    observed: Option<&dynamics::Observed>,
+    pre: &[Displacement<f64>],
+    desc: &[usize],
+    chosen: &[PartValue<'_>],
+    transforms: &[Vec<Displacement<f64>>],
+    model: &ModelConfig,
+    robust: bool,
+    mut scores: Option<&mut Vec<Vec<f64>>>,
+) -> (f64, Vec<f64>, Vec<f64>) {
+    let Some(xi) = s.kd else { return (0.0, vec![], vec![]) };
+    let dyncfg = &model.dynamics;
+    let (mut l, mut gx, mut gq) = (0.0, vec![0.0; xi.len()], vec![0.0; ev.len()]);
+    if let Some(sc) = scores.as_deref_mut() {
+        sc.clear();
+    }
+    // The deviation scale, also that of a joint at rest between windows and at rest frames.
+    let rest_sd = dynamics::decode::<f64>(s.params.joint, xi, &ev.effects[i], dyncfg).deviation;
+    for (w, win) in ev.windows.iter().enumerate() {
+        let gx_before = scores.is_some().then(|| gx.clone());
+        // Between windows no force acts: the joint rests where the last window left it, up to
+        // the same deviation scale — while the object is watched (not across separate episodes).
+        if w > 0 && win.continues {
+            let (a, b) = (ev.windows[w - 1].frames[ev.windows[w - 1].frames.len() - 1], win.frames[0]);
+            l += rest_term(s.q, a, b, rest_sd, dyncfg.deviation_log_sd, &mut gq, &mut gx[3]);
+        }
+        // After the window the joint rests where the physics window left it (rest frames).
+        if let Some(&a) = win.frames.last() {
+            for &b in &win.rest {
+                l += rest_term(s.q, a, b, rest_sd, dyncfg.deviation_log_sd, &mut gq, &mut gx[3]);
+            }
+        }
+        let f0 = win.frames[0];
+        // The joint and the child at the window's start, moved by the parent's displacement.
+        let own = pre[f0].compose(&displacement(s.params, s.q[f0]));
+        let mut joint = *s.params;
+        joint.direction = pre[f0].r * s.params.direction;
+        joint.point = pre[f0].apply(&s.params.point);
+        let rotate = |d: &Displacement<f64>, u: &Matrix3<f64>| d.r * u * d.r.transpose();
+        let subtree: Vec<SubtreeBody> = desc
+            .iter()
+            .map(|&m| SubtreeBody {
+                mass: chosen[m]
+                    .kd
+                    .map(|x| dynamics::decode::<f64>(chosen[m].params.joint, x, &ev.effects[m], dyncfg).mass)
+                    .unwrap_or(dyncfg.mass_median_kg),
+                com: transforms[m][f0].apply(&chosen[m].params.com),
+                unit_inertia: rotate(&transforms[m][f0], &ev.parts[m].unit_inertia),
+            })
+            .collect();
+        let pushed = win.pushed.is_some_and(|p| p == i || desc.contains(&p));
+        let jw = JointInWindow {
+            joint: &joint,
+            com: own.apply(&s.params.com),
+            unit_inertia: rotate(&own, &ev.parts[i].unit_inertia),
+            subtree,
+            pushed,
+            effects: ev.effects[i],
+        };
+        let (lw, gxw, gqw) = if robust {
+            let (l, gx, gq, _) = dynamics::robust_window_prior(&jw, win, s.q, observed, xi, dyncfg, model.velocity_sd_mps);
+            (l, gx, gq)
+        } else {
+            dynamics::window_prior(&jw, win, s.q, observed, xi, dyncfg)
+        };
+        l += lw;
+        for (a, b) in gx.iter_mut().zip(&gxw) {
+            *a += b;
+        }
+        for (k, &t) in win.frames.iter().enumerate() {
+            gq[t] += gqw[k];
+        }
+        if let (Some(sc), Some(before)) = (scores.as_deref_mut(), &gx_before) {
+            sc.push(gx.iter().zip(before).map(|(a, b)| a - b).collect());
+        }
+    }
+    (l, gx, gq)
+}
+
+/// `log N(q_b; q_a, sd^2)`, a joint resting at `q_a` while no force acts (between windows, and
+/// at rest frames), with its gradients added to `gq` (coordinates) and `g_dev` (the deviation's
+/// standardised parameter, whose log-normal has log-sd `deviation_log_sd`).
+fn rest_term(q: &[f64], a: usize, b: usize, sd: f64, deviation_log_sd: f64, gq: &mut [f64], g_dev: &mut f64) -> f64 {
+    let d = q[b] - q[a];
+    gq[b] -= d / (sd * sd);
+    gq[a] += d / (sd * sd);
+    *g_dev += (d * d / (sd * sd) - 1.0) * deviation_log_sd;
+    -(d * d) / (2.0 * sd * sd) - (sd * (2.0 * std::f64::consts::PI).sqrt()).ln()
+}
+
+/// The discrete latents a [`Density`] conditions on: the tree (`parent[i]`: 0 the fixed frame,
+/// `j + 1` part `j`, evidence order) and each part's joint type.
+#[derive(Debug, Clone, PartialEq, Eq, Hash)]
+pub struct Structure {
+    pub parent: Vec<usize>,
+    pub types: Vec<JointType>,
+}
+
+/// Where one part's latents live in the flat vector of a [`Density`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PartSlots {
+    pub joint: JointType,
+    /// Standardised kinematic parameters: offset and count ([`JointType::num_params`]).
+    pub xi: usize,
+    pub np: usize,
+    /// Joint coordinates, one per grid frame \[m of path\] (movable joints).
+    pub q: Option<usize>,
+    /// Standardised velocity scale of the coordinates' random walk (kinematic mode, movable).
+    pub vel: Option<usize>,
+    /// Standardised kinodynamic parameters: offset and count (dynamic mode, movable).
+    pub kd: Option<(usize, usize)>,
+}
+
+/// The unnormalised log posterior of the continuous latents of the evidence `ev` under one
+/// [`Structure`] (module docs). Errors: none; a non-finite value (a simulation that blew up) is
+/// returned as is for the caller to reject.
+pub struct Density<'a> {
+    ev: &'a Evidence,
+    model: &'a ModelConfig,
+    structure: Structure,
+    slots: Vec<PartSlots>,
+    dim: usize,
+}
+
+/// Step of the forward differences of the physics prior (standardised units).
+const FD_STEP: f64 = 1e-6;
+
+impl<'a> Density<'a> {
+    /// The density for `structure` (one entry per part of `ev`). Dynamic mode when `ev` has
+    /// windows.
+    pub fn new(ev: &'a Evidence, model: &'a ModelConfig, structure: Structure) -> Density<'a> {
+        let frames = ev.len();
+        let dynamic = !ev.windows.is_empty();
+        let mut off = 0;
+        let mut take = |n: usize| {
+            let o = off;
+            off += n;
+            o
+        };
+        let slots = structure
+            .types
+            .iter()
+            .enumerate()
+            .map(|(i, &joint)| {
+                let np = joint.num_params();
+                let xi = take(np);
+                let q = joint.movable().then(|| take(frames));
+                let vel = (joint.movable() && !dynamic).then(|| take(1));
+                let kd = (joint.movable() && dynamic).then(|| {
+                    let d = dynamics::num_params(&ev.effects[i]);
+                    (take(d), d)
+                });
+                PartSlots { joint, xi, np, q, vel, kd }
+            })
+            .collect();
+        Density { ev, model, structure, slots, dim: off }
+    }
+
+    /// Number of continuous latents.
+    pub fn dim(&self) -> usize {
+        self.dim
+    }
+
+    pub fn structure(&self) -> &Structure {
+        &self.structure
+    }
+
+    /// Where each part's latents are in the flat vector (evidence order).
+    pub fn slots(&self) -> &[PartSlots] {
+        &self.slots
+    }
+
+    pub fn evidence(&self) -> &Evidence {
+        self.ev
+    }
+
+    /// Decoded kinematic parameters of part `i` at `x`.
+    pub fn params(&self, x: &[f64], i: usize) -> JointParams<f64> {
+        let s = &self.slots[i];
+        decode(s.joint, &x[s.xi..s.xi + s.np], &self.ev.parts[i].com0, self.model)
+    }
+
+    /// `log p(x, evidence | structure)` up to a constant, and its gradient (`grad`, length
+    /// [`Self::dim`], overwritten).
+    pub fn log_density(&self, x: &[f64], grad: &mut [f64]) -> f64 {
+        grad.iter_mut().for_each(|g| *g = 0.0);
+        let (ev, model) = (self.ev, self.model);
+        let (n, frames) = (ev.parts.len(), ev.len());
+        let parent = &self.structure.parent;
+        let params: Vec<JointParams<f64>> = (0..n).map(|i| self.params(x, i)).collect();
+        let zeros = vec![0.0; frames];
+        let values: Vec<PartValue<'_>> = (0..n)
+            .map(|i| {
+                let s = &self.slots[i];
+                PartValue { params: &params[i], q: s.q.map_or(&zeros[..], |o| &x[o..o + frames]), kd: s.kd.map(|(o, d)| &x[o..o + d]) }
+            })
+            .collect();
+        let transforms = part_transforms(parent, &values, frames);
+        let positions: Vec<Vec<Vector3<f64>>> = (0..n).map(|m| (0..frames).map(|t| transforms[m][t].apply(&params[m].com)).collect()).collect();
+        let mut lp = 0.0;
+        for i in 0..n {
+            let s = self.slots[i];
+            // N(0, I) on the standardised parameters.
+            for j in s.xi..s.xi + s.np {
+                lp -= 0.5 * x[j] * x[j];
+                grad[j] -= x[j];
+            }
+            // The likelihood of the part's subtree: its gradient with respect to this part's
+            // parameters is exact (the descendants move with it); the value is counted once, at
+            // the children of the fixed frame.
+            let pre = pre_transforms(parent, i, &transforms, frames);
+            let members = subtree_members(parent, i, &transforms, &positions, &values);
+            let (l, gx, gq) = block_pass(ev, i, s.joint, &x[s.xi..s.xi + s.np], values[i].q, &pre, &members, model);
+            if parent[i] == 0 {
+                lp += l;
+            }
+            for (j, g) in gx.iter().enumerate() {
+                grad[s.xi + j] += g;
+            }
+            if let Some(o) = s.q {
+                for t in 0..frames {
+                    grad[o + t] += gq[t];
+                }
+            }
+            if let (Some(o), Some(v)) = (s.q, s.vel) {
+                let q = &x[o..o + frames];
+                let (l, gm, _, gv, _) = coordinate_prior(ev, q, &zeros, x[v], 0.0, model);
+                lp += l - 0.5 * x[v] * x[v];
+                grad[v] += gv - x[v];
+                for t in 0..frames {
+                    grad[o + t] += gm[t];
+                }
+            }
+            if let (Some(o), Some((k, d))) = (s.q, s.kd) {
+                for j in k..k + d {
+                    lp -= 0.5 * x[j] * x[j];
+                    grad[j] -= x[j];
+                }
+                let var = model.window_start_sd_m.powi(2);
+                for f in window_starts(ev) {
+                    lp += -x[o + f] * x[o + f] / (2.0 * var) - 0.5 * (var * 2.0 * std::f64::consts::PI).ln();
+                    grad[o + f] -= x[o + f] / var;
+                }
+            }
+        }
+        if !ev.windows.is_empty() {
+            let (l, g) = self.physics(x, &values, &transforms);
+            lp += l;
+            for (a, b) in grad.iter_mut().zip(&g) {
+                *a += b;
+            }
+        }
+        lp
+    }
+
+    /// The physics prior of all movable parts at `values` and its gradient with respect to `x`:
+    /// each part's own kinodynamics and coordinates from the physics code's dual numbers; the
+    /// kinematic parameters, and kinodynamics seen by another part's physics (a child's mass),
+    /// by forward differences of the parts whose physics depends on them.
+    fn physics(&self, x: &[f64], values: &[PartValue<'_>], transforms: &[Vec<Displacement<f64>>]) -> (f64, Vec<f64>) {
+        let n = values.len();
+        let frames = self.ev.len();
+        let parent = &self.structure.parent;
+        let mut grad = vec![0.0; self.dim];
+        let per_part: Vec<f64> = (0..n)
+            .map(|i| {
+                let (l, gx, gq) = self.part_physics(i, values, transforms);
+                let s = self.slots[i];
+                if let (Some((k, _)), Some(o)) = (s.kd, s.q) {
+                    for (j, g) in gx.iter().enumerate() {
+                        grad[k + j] += g;
+                    }
+                    for t in 0..frames {
+                        grad[o + t] += gq[t];
+                    }
+                }
+                l
+            })
+            .collect();
+        let total: f64 = per_part.iter().sum();
+        if !total.is_finite() {
+            return (total, grad);
+        }
+        // Which parts' physics a part's values enter: its own (kinematic parameters), its
+        // ancestors' (its mass, centre of mass and inertia ride in their subtree) and its
+        // descendants' (its displacement moves their joints).
+        let movable: Vec<usize> = (0..n).filter(|&i| self.slots[i].kd.is_some()).collect();
+        let mut xp = x.to_vec();
+        for j in 0..n {
+            let desc = tree::descendants(parent, j);
+            let affected: Vec<usize> = movable.iter().copied().filter(|&i| i == j || desc.contains(&i) || tree::descendants(parent, i).contains(&j)).collect();
+            if affected.is_empty() {
+                continue;
+            }
+            let s = self.slots[j];
+            let mut dims: Vec<usize> = (s.xi..s.xi + s.np).collect();
+            // Own kinodynamics are exact already; only an ancestor's physics sees them (mass).
+            if let Some((k, d)) = s.kd {
+                if affected.iter().any(|&i| i != j) {
+                    dims.extend(k..k + d);
+                }
+            }
+            for idx in dims {
+                let own_kd = s.kd.is_some_and(|(k, d)| idx >= k && idx < k + d);
+                xp[idx] = x[idx] + FD_STEP;
+                let params: Vec<JointParams<f64>> = (0..n).map(|m| if m == j { self.params(&xp, m) } else { *values[m].params }).collect();
+                let pv: Vec<PartValue<'_>> = (0..n)
+                    .map(|m| {
+                        let mut v = values[m];
+                        v.params = &params[m];
+                        if m == j {
+                            v.kd = s.kd.map(|(k, d)| &xp[k..k + d]);
+                        }
+                        v
+                    })
+                    .collect();
+                let tr = part_transforms(parent, &pv, frames);
+                let mut d = 0.0;
+                for &i in &affected {
+                    if own_kd && i == j {
+                        continue;
+                    }
+                    d += self.part_physics(i, &pv, &tr).0 - per_part[i];
+                }
+                grad[idx] += d / FD_STEP;
+                xp[idx] = x[idx];
+            }
+        }
+        (total, grad)
+    }
+
+    /// [`physics_prior`] of part `i` (robust windows, as SVI's ELBO), or zeros when rigid.
+    fn part_physics(&self, i: usize, values: &[PartValue<'_>], transforms: &[Vec<Displacement<f64>>]) -> (f64, Vec<f64>, Vec<f64>) {
+        if values[i].kd.is_none() {
+            return (0.0, vec![], vec![]);
+        }
+        let parent = &self.structure.parent;
+        let pre = pre_transforms(parent, i, transforms, self.ev.len());
+        let desc = tree::descendants(parent, i);
+        physics_prior(self.ev, i, &values[i], None, &pre, &desc, values, transforms, self.model, true, None)
+    }
+}
+
+/// The displacement of part `i`'s parent at every grid frame (identity under the fixed frame).
+pub fn pre_transforms(parent: &[usize], i: usize, transforms: &[Vec<Displacement<f64>>], frames: usize) -> Vec<Displacement<f64>> {
+    if parent[i] == 0 {
+        vec![Displacement::identity(); frames]
+    } else {
+        transforms[parent[i] - 1].clone()
+    }
+}
+
+/// The grid frames whose coordinate has the window-start prior in dynamic mode: the first, and
+/// the first of every window that does not continue the previous one (later ones follow by
+/// continuity, the rest by the physics prior).
+pub fn window_starts(ev: &Evidence) -> Vec<usize> {
+    let mut out = vec![0];
+    for w in ev.windows.iter().filter(|w| !w.continues) {
+        if !out.contains(&w.frames[0]) {
+            out.push(w.frames[0]);
+        }
+    }
+    out
+}
