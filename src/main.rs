@@ -64,7 +64,8 @@ enum Command {
         /// Write the metrics (JSON) here.
         #[arg(long)]
         json: Option<PathBuf>,
-        /// Add the paper's Disconnected and Clique baselines.
+        /// Add the paper's baselines: Disconnected, Clique, and (dynamic mode) differentiable
+        /// simulation with the true structure and axes, from the priors' medians and 1% tails.
         #[arg(long)]
         baselines: bool,
         /// A corpus: a manifest (bags/generate/corpus.py), a folder holding manifest.json, or a
@@ -270,7 +271,7 @@ fn main() -> ExitCode {
                 return eval_corpus(&corpus, &split, layout, jobs, config.as_ref(), json.as_ref());
             }
             let input = ReplayInput { bags, config, inference };
-            let (run, _) = match replay(&input) {
+            let (run, cfg) = match replay(&input) {
                 Ok(r) => r,
                 Err(code) => return code,
             };
@@ -283,7 +284,13 @@ fn main() -> ExitCode {
                 eprintln!("error: no posterior: no part was observed inside an interaction window");
                 return ExitCode::from(EXIT_INPUT);
             };
-            let metrics = eval::evaluate(gt, post, baselines);
+            let mut metrics = eval::evaluate(gt, post, baselines);
+            if let (Some(b), false) = (metrics.baselines.as_mut(), run.windows.is_empty() || run.wrenches.is_empty()) {
+                use bom::eval::baselines::{diff_sim, Start};
+                let ev = pipeline::final_evidence(&run, &cfg);
+                b.diff_sim = Some(diff_sim(&ev, gt, &cfg.model, Start::Median));
+                b.diff_sim_tail_init = Some(diff_sim(&ev, gt, &cfg.model, Start::LowerTail));
+            }
             print!("{}", output::table::render(&run));
             print!("{}", eval::render(&metrics));
             if let Some(path) = json {
