@@ -267,6 +267,10 @@ pub fn run(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
 
 async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
     let cfg = opts.config.clone();
+    if cfg.nuts.enabled {
+        // Not built yet in the node (issue 26): say so instead of ignoring the parameter.
+        tracing::warn!("parameter nuts.enabled: the node publishes BOM-SVI posteriors only; BOM-NUTS runs in `bom replay|eval --inference nuts`");
+    }
     let mw = |e: &dyn std::fmt::Debug| NodeError::Middleware(format!("{e:?}"));
     let context = Context::from_domain_participant(participant_from_env()?).map_err(|e| mw(&e))?;
     let node_name = NodeName::new("/", &opts.node_name).map_err(|e| NodeError::Settings(format!("node name '{}': {e:?}", opts.node_name)))?;
