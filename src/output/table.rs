@@ -22,6 +22,19 @@ pub fn render(run: &Run) -> String {
         }
         Some(p) => {
             let _ = writeln!(s, "  posterior: ELBO {:.1} nats, {} iterations, {:.2} s", p.elbo, p.iterations, p.runtime_s);
+            if let Some(n) = &run.sampler {
+                let _ = writeln!(
+                    s,
+                    "  BOM-NUTS: {} structure(s), {} chains x {} draws, R-hat max {:.3}, bulk ESS min {:.0}, {} divergent, {:.2} s",
+                    n.structures.len(),
+                    n.chains,
+                    n.draws,
+                    n.r_hat_max,
+                    n.ess_bulk_min,
+                    n.divergences,
+                    n.runtime_s
+                );
+            }
             let _ = writeln!(
                 s,
                 "  {:>5} {:>6} {:>7}  {:>6} {:>9} {:>8}  {:<24} {:>7}  {:<26} {:>8}",
