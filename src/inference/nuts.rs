@@ -129,18 +129,18 @@ struct Logp<'a> {
     blocks: Vec<(usize, DVector<f64>, DMatrix<f64>)>,
 }
 
-impl Logp<'_> {
-    /// Model coordinates `x` of sampler coordinates `z`.
-    fn to_model(&self, z: &[f64]) -> Vec<f64> {
-        let mut x = z.to_vec();
-        for (o, m, l) in &self.blocks {
-            let d = m.len();
-            let v = m + l * DVector::from_column_slice(&z[*o..o + d]);
-            x[*o..o + d].copy_from_slice(v.as_slice());
-        }
-        x
+/// Model coordinates `x` of sampler coordinates `z` under the preconditioner `blocks` of [`Logp`].
+fn to_model(blocks: &[(usize, DVector<f64>, DMatrix<f64>)], z: &[f64]) -> Vec<f64> {
+    let mut x = z.to_vec();
+    for (o, m, l) in blocks {
+        let d = m.len();
+        let v = m + l * DVector::from_column_slice(&z[*o..o + d]);
+        x[*o..o + d].copy_from_slice(v.as_slice());
     }
+    x
+}
 
+impl Logp<'_> {
     /// Sampler coordinates of model coordinates `x`.
     fn to_sampler(&self, x: &[f64]) -> Vec<f64> {
         let mut z = x.to_vec();
@@ -170,7 +170,7 @@ impl CpuLogpFunc for Logp<'_> {
     }
 
     fn logp(&mut self, position: &[f64], gradient: &mut [f64]) -> Result<f64, NonFinite> {
-        let x = self.to_model(position);
+        let x = to_model(&self.blocks, position);
         let l = self.density.log_density(&x, gradient);
         for (o, m, lf) in &self.blocks {
             let d = m.len();
@@ -329,18 +329,17 @@ fn preconditioner(density: &Density<'_>, guide: &GuideState) -> Vec<(usize, DVec
 type ChainDraws = (Vec<Vec<f64>>, u64);
 
 /// Run the chains of one structure.
-fn sample_structure(ev: &Evidence, model: &ModelConfig, structure: &Structure, guide: &GuideState, cfg: &NutsConfig, seed: u64) -> anyhow_free::Result<StructureDraws> {
+fn sample_structure(ev: &Evidence, model: &ModelConfig, structure: &Structure, guide: &GuideState, cfg: &NutsConfig, seed: u64) -> Result<StructureDraws, String> {
     let settings = DiagNutsSettings { num_tune: cfg.tune, num_draws: cfg.draws, maxdepth: cfg.maxdepth, ..Default::default() };
-    let results: Vec<anyhow_free::Result<ChainDraws>> = std::thread::scope(|scope| {
+    let results: Vec<Result<ChainDraws, String>> = std::thread::scope(|scope| {
         let handles: Vec<_> = (0..cfg.chains.max(1))
             .map(|c| {
-                scope.spawn(move || -> anyhow_free::Result<ChainDraws> {
+                scope.spawn(move || -> Result<ChainDraws, String> {
                     let density = Density::new(ev, model, structure.clone());
                     let mut rng = ChaCha8Rng::seed_from_u64(seed.wrapping_add(1000 * c as u64));
                     let blocks = preconditioner(&density, guide);
                     let logp = Logp { blocks: blocks.clone(), density };
                     let z0 = logp.to_sampler(&start_from_guide(&logp.density, guide, &mut rng));
-                    let unmap = Logp { blocks, density: Density::new(ev, model, structure.clone()) };
                     let math = CpuMath::new(logp);
                     let mut nrng = NutsRng::seed_from_u64(seed.wrapping_add(7919 * c as u64 + 1));
                     let mut chain = settings.new_chain(c as u64, math, &mut nrng).map_err(|e| e.to_string())?;
@@ -354,7 +353,7 @@ fn sample_structure(ev: &Evidence, model: &ModelConfig, structure: &Structure, g
                             divergences += info.diverging as u64;
                             steps += info.num_steps;
                             step_size = info.step_size;
-                            out.push(unmap.to_model(&draw));
+                            out.push(to_model(&blocks, &draw));
                         }
                     }
                     tracing::debug!(
@@ -376,11 +375,6 @@ fn sample_structure(ev: &Evidence, model: &ModelConfig, structure: &Structure, g
         divergences += v;
     }
     Ok(StructureDraws { draws, divergences })
-}
-
-/// `Result` with a one-line error, without pulling `anyhow` into the API.
-mod anyhow_free {
-    pub type Result<T> = std::result::Result<T, String>;
 }
 
 /// The reported scalars of a draw: per part, the noise level; per movable part, the axis
@@ -489,7 +483,7 @@ pub fn sample(ev: &Evidence, model: &ModelConfig, svi: &Fitted, cfg: &NutsConfig
         for (k, name) in names.iter().enumerate() {
             let chains: Vec<Vec<f64>> = per_draw.iter().map(|c| c.iter().map(|d| d[k].1).collect()).collect();
             let (r, ess) = rank_diagnostics(&chains);
-            if !passes(r, ess, cfg) {
+            if !(r_hat_ok(r, cfg) && ess_ok(ess, cfg)) {
                 let med: Vec<f64> = chains.iter().map(|c| estimate_from_draws(c).median).collect();
                 tracing::debug!("structure {si}: {name}: R-hat {r:.3}, bulk ESS {ess:.0}, chain medians {med:.4?}");
             }
@@ -524,10 +518,10 @@ pub fn sample(ev: &Evidence, model: &ModelConfig, svi: &Fitted, cfg: &NutsConfig
     report.r_hat_max = r_max;
     report.ess_bulk_min = if ess_min.is_finite() { ess_min } else { f64::NAN };
     let total = (report.chains as u64 * cfg.draws * structs.len() as u64).max(1);
-    if !passes(report.r_hat_max, cfg.ess_bulk_min, cfg) {
+    if !r_hat_ok(report.r_hat_max, cfg) {
         report.warnings.push(format!("NUTS: R-hat {:.3} > {}", report.r_hat_max, cfg.r_hat_max));
     }
-    if !passes(1.0, report.ess_bulk_min, cfg) {
+    if !ess_ok(report.ess_bulk_min, cfg) {
         report.warnings.push(format!("NUTS: bulk ESS {:.0} < {}", report.ess_bulk_min, cfg.ess_bulk_min));
     }
     if report.divergences as f64 > cfg.divergence_share_max * total as f64 {
@@ -538,9 +532,14 @@ pub fn sample(ev: &Evidence, model: &ModelConfig, svi: &Fitted, cfg: &NutsConfig
     Ok((posterior, report))
 }
 
-/// Whether an R-hat and a bulk ESS meet the configured limits (NaN never does).
-fn passes(r_hat: f64, ess: f64, cfg: &NutsConfig) -> bool {
-    r_hat <= cfg.r_hat_max && ess >= cfg.ess_bulk_min
+/// Whether an R-hat meets the configured limit (NaN never does).
+fn r_hat_ok(r_hat: f64, cfg: &NutsConfig) -> bool {
+    r_hat <= cfg.r_hat_max
+}
+
+/// Whether a bulk ESS meets the configured limit (NaN never does).
+fn ess_ok(ess: f64, cfg: &NutsConfig) -> bool {
+    ess >= cfg.ess_bulk_min
 }
 
 /// Axes, kinodynamics, mean parameters and coordinates of every part from the draws of the most
