@@ -37,7 +37,7 @@ use super::guide::GuideState;
 use super::summary::{axis_from_draws, estimate_from_draws};
 use super::svi::Fitted;
 use super::{Kinodynamics, Posterior};
-use crate::model::density::{Density, Structure};
+use crate::model::density::{Density, NonCentred, Structure};
 use crate::model::likelihood::Evidence;
 use crate::model::{dynamics, JointParams, JointType, ModelConfig};
 
@@ -55,6 +55,9 @@ pub struct NutsConfig {
     pub draws: u64,
     /// Largest tree depth (at most `2^maxdepth` leapfrog steps per draw).
     pub maxdepth: u64,
+    /// Dynamic mode: sample the coordinates in windows non-centred, `q_t = Psi_t + sigma_d u_t`
+    /// ([`NonCentred`], why there); false samples them as they are.
+    pub non_centred: bool,
     /// Structures sampled: those holding this much of the SVI posterior's mass, at most
     /// `max_structures`.
     pub structure_mass: f64,
@@ -75,6 +78,7 @@ impl Default for NutsConfig {
             tune: 1000,
             draws: 1000,
             maxdepth: 10,
+            non_centred: false,
             structure_mass: 0.99,
             max_structures: 4,
             r_hat_max: 1.01,
@@ -123,8 +127,11 @@ impl LogpError for NonFinite {
 /// step size shrank to the ridge's width and the drawer bag's damping had a bulk ESS of 4 from
 /// 400 draws (step size 0.13-0.18), the other parameters 200-400. A dense mass matrix on those
 /// few coordinates is this map.
+///
+/// The kinodynamic blocks are those of the [`NonCentred`] coordinates `y`; the sampler's `z` maps
+/// to `y` by the blocks and `y` to the model's `x` by [`NonCentred::to_model`].
 struct Logp<'a> {
-    density: Density<'a>,
+    density: NonCentred<'a>,
     /// `(offset, m, L)` per kinodynamic block.
     blocks: Vec<(usize, DVector<f64>, DMatrix<f64>)>,
 }
@@ -156,7 +163,7 @@ impl Logp<'_> {
 
 impl HasDims for Logp<'_> {
     fn dim_sizes(&self) -> HashMap<String, u64> {
-        [("unconstrained_parameter".to_string(), self.density.dim() as u64)].into_iter().collect()
+        [("unconstrained_parameter".to_string(), self.density.density().dim() as u64)].into_iter().collect()
     }
 }
 
@@ -166,7 +173,7 @@ impl CpuLogpFunc for Logp<'_> {
     type ExpandedVector = Vec<f64>;
 
     fn dim(&self) -> usize {
-        self.density.dim()
+        self.density.density().dim()
     }
 
     fn logp(&mut self, position: &[f64], gradient: &mut [f64]) -> Result<f64, NonFinite> {
@@ -338,8 +345,10 @@ fn sample_structure(ev: &Evidence, model: &ModelConfig, structure: &Structure, g
                     let density = Density::new(ev, model, structure.clone());
                     let mut rng = ChaCha8Rng::seed_from_u64(seed.wrapping_add(1000 * c as u64));
                     let blocks = preconditioner(&density, guide);
-                    let logp = Logp { blocks: blocks.clone(), density };
-                    let z0 = logp.to_sampler(&start_from_guide(&logp.density, guide, &mut rng));
+                    let x0 = start_from_guide(&density, guide, &mut rng);
+                    let logp = Logp { blocks: blocks.clone(), density: NonCentred::new(density, cfg.non_centred) };
+                    let z0 = logp.to_sampler(&logp.density.from_model(&x0));
+                    let map = NonCentred::new(Density::new(ev, model, structure.clone()), cfg.non_centred);
                     let math = CpuMath::new(logp);
                     let mut nrng = NutsRng::seed_from_u64(seed.wrapping_add(7919 * c as u64 + 1));
                     let mut chain = settings.new_chain(c as u64, math, &mut nrng).map_err(|e| e.to_string())?;
@@ -353,7 +362,7 @@ fn sample_structure(ev: &Evidence, model: &ModelConfig, structure: &Structure, g
                             divergences += info.diverging as u64;
                             steps += info.num_steps;
                             step_size = info.step_size;
-                            out.push(to_model(&blocks, &draw));
+                            out.push(map.to_model(&to_model(&blocks, &draw)));
                         }
                     }
                     tracing::debug!(

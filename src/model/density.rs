@@ -34,7 +34,8 @@ use nalgebra::{Matrix3, Vector3};
 use num_dual::DualSVec64;
 
 use crate::model::dynamics::{self, JointInWindow, SubtreeBody};
-use crate::model::likelihood::{coordinate_prior, log_likelihood_position, log_likelihood_rotation, Evidence};
+use crate::model::effects::EffectSet;
+use crate::model::likelihood::{coordinate_prior, log_likelihood_position, log_likelihood_rotation, Evidence, WindowEvidence};
 use crate::model::{decode, displacement, mat_mul, tree, Displacement, JointParams, JointType, ModelConfig};
 
 /// Dual number with enough directions for the largest joint (11 parameters) plus one coordinate.
@@ -199,33 +200,8 @@ pub fn physics_prior(
                 l += rest_term(s.q, a, b, rest_sd, dyncfg.deviation_log_sd, &mut gq, &mut gx[3]);
             }
         }
-        let f0 = win.frames[0];
-        // The joint and the child at the window's start, moved by the parent's displacement.
-        let own = pre[f0].compose(&displacement(s.params, s.q[f0]));
-        let mut joint = *s.params;
-        joint.direction = pre[f0].r * s.params.direction;
-        joint.point = pre[f0].apply(&s.params.point);
-        let rotate = |d: &Displacement<f64>, u: &Matrix3<f64>| d.r * u * d.r.transpose();
-        let subtree: Vec<SubtreeBody> = desc
-            .iter()
-            .map(|&m| SubtreeBody {
-                mass: chosen[m]
-                    .kd
-                    .map(|x| dynamics::decode::<f64>(chosen[m].params.joint, x, &ev.effects[m], dyncfg).mass)
-                    .unwrap_or(dyncfg.mass_median_kg),
-                com: transforms[m][f0].apply(&chosen[m].params.com),
-                unit_inertia: rotate(&transforms[m][f0], &ev.parts[m].unit_inertia),
-            })
-            .collect();
-        let pushed = win.pushed.is_some_and(|p| p == i || desc.contains(&p));
-        let jw = JointInWindow {
-            joint: &joint,
-            com: own.apply(&s.params.com),
-            unit_inertia: rotate(&own, &ev.parts[i].unit_inertia),
-            subtree,
-            pushed,
-            effects: ev.effects[i],
-        };
+        let wj = window_joint(ev, i, s, win, pre, desc, chosen, transforms, model);
+        let jw = wj.view(ev.effects[i]);
         let (lw, gxw, gqw) = if robust {
             let (l, gx, gq, _) = dynamics::robust_window_prior(&jw, win, s.q, observed, xi, dyncfg, model.velocity_sd_mps);
             (l, gx, gq)
@@ -244,6 +220,66 @@ pub fn physics_prior(
         }
     }
     (l, gx, gq)
+}
+
+/// Part `i`'s joint in one window as the physics sees it (fixed frame, at the window's start
+/// frame `f0`): its geometry moved by the parent's displacement `pre[f0]`, the child's centre of
+/// mass and inertia, and the locked subtree `desc` (masses from `chosen`'s kinodynamics, the
+/// prior median where a descendant has none), with `transforms` from [`part_transforms`].
+#[allow(clippy::too_many_arguments)]
+pub fn window_joint(
+    ev: &Evidence,
+    i: usize,
+    s: &PartValue<'_>,
+    win: &WindowEvidence,
+    pre: &[Displacement<f64>],
+    desc: &[usize],
+    chosen: &[PartValue<'_>],
+    transforms: &[Vec<Displacement<f64>>],
+    model: &ModelConfig,
+) -> WindowJoint {
+    let dyncfg = &model.dynamics;
+    let f0 = win.frames[0];
+    let own = pre[f0].compose(&displacement(s.params, s.q[f0]));
+    let mut joint = *s.params;
+    joint.direction = pre[f0].r * s.params.direction;
+    joint.point = pre[f0].apply(&s.params.point);
+    let rotate = |d: &Displacement<f64>, u: &Matrix3<f64>| d.r * u * d.r.transpose();
+    let subtree: Vec<SubtreeBody> = desc
+        .iter()
+        .map(|&m| SubtreeBody {
+            mass: chosen[m]
+                .kd
+                .map(|x| dynamics::decode::<f64>(chosen[m].params.joint, x, &ev.effects[m], dyncfg).mass)
+                .unwrap_or(dyncfg.mass_median_kg),
+            com: transforms[m][f0].apply(&chosen[m].params.com),
+            unit_inertia: rotate(&transforms[m][f0], &ev.parts[m].unit_inertia),
+        })
+        .collect();
+    WindowJoint {
+        com: own.apply(&s.params.com),
+        unit_inertia: rotate(&own, &ev.parts[i].unit_inertia),
+        joint,
+        subtree,
+        pushed: win.pushed.is_some_and(|p| p == i || desc.contains(&p)),
+    }
+}
+
+/// What [`window_joint`] returns: the owned parts of a [`JointInWindow`].
+#[derive(Debug, Clone)]
+pub struct WindowJoint {
+    pub joint: JointParams<f64>,
+    pub com: Vector3<f64>,
+    pub unit_inertia: Matrix3<f64>,
+    pub subtree: Vec<SubtreeBody>,
+    pub pushed: bool,
+}
+
+impl WindowJoint {
+    /// The physics' view, with the joint's `effects`.
+    pub fn view(&self, effects: EffectSet) -> JointInWindow<'_> {
+        JointInWindow { joint: &self.joint, com: self.com, unit_inertia: self.unit_inertia, subtree: self.subtree.clone(), pushed: self.pushed, effects }
+    }
 }
 
 /// `log N(q_b; q_a, sd^2)`, a joint resting at `q_a` while no force acts (between windows, and
@@ -462,7 +498,7 @@ impl<'a> Density<'a> {
                 continue;
             }
             let s = self.slots[j];
-            let mut dims: Vec<usize> = (s.xi..s.xi + s.np).collect();
+            let mut dims = physics_dims(&s);
             // Own kinodynamics are exact already; only an ancestor's physics sees them (mass).
             if let Some((k, d)) = s.kd {
                 if affected.iter().any(|&i| i != j) {
@@ -510,6 +546,13 @@ impl<'a> Density<'a> {
     }
 }
 
+/// The kinematic parameters of a part that the physics sees (its forward differences): all but
+/// the position and rotation noise levels (`xi[3]`, `xi[4]` of every joint type,
+/// [`crate::model::rigid`]), which enter only the likelihood.
+fn physics_dims(s: &PartSlots) -> Vec<usize> {
+    (s.xi..s.xi + s.np).filter(|&k| k != s.xi + 3 && k != s.xi + 4).collect()
+}
+
 /// The displacement of part `i`'s parent at every grid frame (identity under the fixed frame).
 pub fn pre_transforms(parent: &[usize], i: usize, transforms: &[Vec<Displacement<f64>>], frames: usize) -> Vec<Displacement<f64>> {
     if parent[i] == 0 {
@@ -530,4 +573,221 @@ pub fn window_starts(ev: &Evidence) -> Vec<usize> {
         }
     }
     out
+}
+
+/// Non-centred coordinates of dynamic mode: the same density as [`Density`] in coordinates `y`
+/// where every movable part's coordinate at a window frame after the window's first is
+/// `q_t = Psi_t + sigma_d u_t`, `Psi` the simulated trajectory of that window
+/// ([`dynamics::window_trajectory`]) and `sigma_d` the part's deviation scale; the sampler moves
+/// `u_t` in place of `q_t` (all other latents are unchanged, among them every window's first
+/// coordinate, from which `Psi` starts).
+///
+/// Why: in centred coordinates the coordinates are tied to the simulation as tightly as the
+/// deviation scale (on the drawer bag its posterior is 0.3 mm, the observation noise's size), so
+/// a step in damping or friction that moves `Psi` must move every coordinate of the window with
+/// it — a narrow ridge through hundreds of dimensions — and a smaller `sigma_d` narrows all of
+/// them at once (Neal's funnel). With `u_t`, moving the kinodynamics moves the coordinates, and
+/// the prior of `u_t` is the deviation's standardised Student-t whatever `sigma_d` is. This is the
+/// non-centred parameterisation of hierarchical models (Papaspiliopoulos, Roberts & Sköld,
+/// *Statistical Science* 22(1), 2007; Betancourt & Girolami 2015).
+///
+/// The map `y -> x` is triangular with `sigma_d` on the diagonal of each `u_t` and 1 elsewhere,
+/// so `log p_y(y) = log p(x(y)) + n log sigma_d` (`n` non-centred coordinates of the part).
+/// Gradient: the chain rule through `Psi` by dual numbers (own kinodynamics, `q_{w,0}`) and by
+/// forward differences (kinematic parameters, a descendant's mass), as [`Density`]'s physics.
+pub struct NonCentred<'a> {
+    density: Density<'a>,
+    /// Per part: `(window, frame index in the window, grid frame)` of each non-centred coordinate.
+    frames: Vec<Vec<(usize, usize, usize)>>,
+}
+
+/// A part's simulated trajectories per window and its deviation scale at some coordinates.
+struct Simulated {
+    trajectories: Vec<dynamics::Trajectory>,
+    deviation: f64,
+}
+
+impl<'a> NonCentred<'a> {
+    /// Non-centred coordinates for `density` when `enabled` (else, and in kinematic mode, the
+    /// identity: `y = x`). A grid frame is non-centred for one window at most, and never when it
+    /// starts a window.
+    pub fn new(density: Density<'a>, enabled: bool) -> Self {
+        let ev = density.evidence();
+        let starts: Vec<usize> = ev.windows.iter().map(|w| w.frames[0]).collect();
+        let frames = density
+            .slots()
+            .iter()
+            .map(|s| {
+                let mut out: Vec<(usize, usize, usize)> = Vec::new();
+                if enabled && s.kd.is_some() && s.q.is_some() {
+                    for (w, win) in ev.windows.iter().enumerate() {
+                        for (k, &t) in win.frames.iter().enumerate().skip(1) {
+                            if !starts.contains(&t) && !out.iter().any(|&(_, _, u)| u == t) {
+                                out.push((w, k, t));
+                            }
+                        }
+                    }
+                }
+                out
+            })
+            .collect();
+        NonCentred { density, frames }
+    }
+
+    pub fn density(&self) -> &Density<'a> {
+        &self.density
+    }
+
+    /// Whether any coordinate is non-centred.
+    fn any(&self) -> bool {
+        self.frames.iter().any(|f| !f.is_empty())
+    }
+
+    /// Part values and transforms at `y` (non-centred entries are read as coordinates; only the
+    /// windows' first frames, which are centred, enter the simulation).
+    fn simulate(&self, y: &[f64], params: &[JointParams<f64>], parts: &[usize]) -> Vec<Option<Simulated>> {
+        let d = &self.density;
+        let (ev, model) = (d.ev, d.model);
+        let frames = ev.len();
+        let n = ev.parts.len();
+        let zeros = vec![0.0; frames];
+        let values: Vec<PartValue<'_>> = (0..n)
+            .map(|i| {
+                let s = &d.slots[i];
+                PartValue { params: &params[i], q: s.q.map_or(&zeros[..], |o| &y[o..o + frames]), kd: s.kd.map(|(o, k)| &y[o..o + k]) }
+            })
+            .collect();
+        let parent = &d.structure.parent;
+        let transforms = part_transforms(parent, &values, frames);
+        (0..n)
+            .map(|i| {
+                if !parts.contains(&i) || self.frames[i].is_empty() {
+                    return None;
+                }
+                let xi = values[i].kd?;
+                let pre = pre_transforms(parent, i, &transforms, frames);
+                let desc = tree::descendants(parent, i);
+                let trajectories = ev
+                    .windows
+                    .iter()
+                    .map(|win| {
+                        let wj = window_joint(ev, i, &values[i], win, &pre, &desc, &values, &transforms, model);
+                        dynamics::window_trajectory(&wj.view(ev.effects[i]), win, values[i].q[win.frames[0]], xi, &model.dynamics)
+                    })
+                    .collect();
+                let deviation = dynamics::decode::<f64>(d.slots[i].joint, xi, &ev.effects[i], &model.dynamics).deviation;
+                Some(Simulated { trajectories, deviation })
+            })
+            .collect()
+    }
+
+    fn all_params(&self, y: &[f64]) -> Vec<JointParams<f64>> {
+        (0..self.density.ev.parts.len()).map(|i| self.density.params(y, i)).collect()
+    }
+
+    /// Model coordinates `x` (as [`Density::log_density`] takes them) of non-centred `y`.
+    pub fn to_model(&self, y: &[f64]) -> Vec<f64> {
+        if !self.any() {
+            return y.to_vec();
+        }
+        let all: Vec<usize> = (0..self.frames.len()).collect();
+        let sim = self.simulate(y, &self.all_params(y), &all);
+        self.apply(y, &sim, |psi, dev, u| psi + dev * u)
+    }
+
+    /// Non-centred coordinates of model coordinates `x`.
+    pub fn from_model(&self, x: &[f64]) -> Vec<f64> {
+        if !self.any() {
+            return x.to_vec();
+        }
+        let all: Vec<usize> = (0..self.frames.len()).collect();
+        let sim = self.simulate(x, &self.all_params(x), &all);
+        self.apply(x, &sim, |psi, dev, q| (q - psi) / dev)
+    }
+
+    fn apply(&self, v: &[f64], sim: &[Option<Simulated>], f: impl Fn(f64, f64, f64) -> f64) -> Vec<f64> {
+        let mut out = v.to_vec();
+        for (i, s) in sim.iter().enumerate() {
+            let (Some(s), Some(o)) = (s, self.density.slots[i].q) else { continue };
+            for &(w, k, t) in &self.frames[i] {
+                out[o + t] = f(s.trajectories[w].psi[k], s.deviation, v[o + t]);
+            }
+        }
+        out
+    }
+
+    /// `log p_y(y)` up to the constant of [`Density::log_density`], and its gradient (`grad`,
+    /// overwritten).
+    pub fn log_density(&self, y: &[f64], grad: &mut [f64]) -> f64 {
+        let d = &self.density;
+        if !self.any() {
+            return d.log_density(y, grad);
+        }
+        let n = self.frames.len();
+        let all: Vec<usize> = (0..n).collect();
+        let params = self.all_params(y);
+        let sim = self.simulate(y, &params, &all);
+        let x = self.apply(y, &sim, |psi, dev, u| psi + dev * u);
+        let mut g = vec![0.0; d.dim];
+        let mut lp = d.log_density(&x, &mut g);
+        grad.copy_from_slice(&g);
+        if !lp.is_finite() {
+            return lp;
+        }
+        let log_sd = d.model.dynamics.deviation_log_sd;
+        for (i, s) in sim.iter().enumerate() {
+            let (Some(s), Some(o), Some((k, nk))) = (s, d.slots[i].q, d.slots[i].kd) else { continue };
+            let ddev = s.deviation * log_sd;
+            for &(w, kk, t) in &self.frames[i] {
+                let (gt, u) = (g[o + t], y[o + t]);
+                let tr = &s.trajectories[w];
+                grad[o + t] = gt * s.deviation;
+                for j in 0..nk {
+                    grad[k + j] += gt * tr.d_xi[kk][j];
+                }
+                grad[k + 3] += gt * u * ddev;
+                grad[o + d.ev.windows[w].frames[0]] += gt * tr.d_q0[kk];
+            }
+            // The Jacobian's log determinant, n log sigma_d.
+            let m = self.frames[i].len() as f64;
+            lp += m * s.deviation.ln();
+            grad[k + 3] += m * log_sd;
+        }
+        // Psi through the kinematic parameters and a descendant's mass: forward differences.
+        let parent = &d.structure.parent;
+        let with_frames: Vec<usize> = (0..n).filter(|&i| !self.frames[i].is_empty()).collect();
+        let mut yp = y.to_vec();
+        for j in 0..n {
+            let desc = tree::descendants(parent, j);
+            let affected: Vec<usize> = with_frames.iter().copied().filter(|&i| i == j || desc.contains(&i) || tree::descendants(parent, i).contains(&j)).collect();
+            if affected.is_empty() {
+                continue;
+            }
+            let s = d.slots[j];
+            let mut dims = physics_dims(&s);
+            if let Some((k, nk)) = s.kd {
+                if affected.iter().any(|&i| i != j) {
+                    dims.extend(k..k + nk);
+                }
+            }
+            for idx in dims {
+                let own_kd = s.kd.is_some_and(|(k, nk)| idx >= k && idx < k + nk);
+                let parts: Vec<usize> = affected.iter().copied().filter(|&i| !(own_kd && i == j)).collect();
+                yp[idx] = y[idx] + FD_STEP;
+                let mut pp = params.clone();
+                pp[j] = d.params(&yp, j);
+                let moved = self.simulate(&yp, &pp, &parts);
+                let mut acc = 0.0;
+                for &i in &parts {
+                    let (Some(a), Some(b), Some(o)) = (&sim[i], &moved[i], d.slots[i].q) else { continue };
+                    for &(w, kk, t) in &self.frames[i] {
+                        acc += g[o + t] * (b.trajectories[w].psi[kk] - a.trajectories[w].psi[kk]);
+                    }
+                }
+                grad[idx] += acc / FD_STEP;
+                yp[idx] = y[idx];
+            }
+        }
+        lp
+    }
 }

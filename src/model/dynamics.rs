@@ -341,6 +341,50 @@ pub fn simulate_window<T: Real>(jw: &JointInWindow<'_>, win: &WindowEvidence, q0
     Some(traj)
 }
 
+/// The simulated trajectory `Psi` of one joint in one window at the window's grid frames, with
+/// its derivatives (for non-centred coordinates, [`crate::model::density::NonCentred`]).
+#[derive(Debug, Clone)]
+pub struct Trajectory {
+    /// `Psi_k` at frame `k` of the window \[m of path\]; `psi[0] = q_{w,0}` (also when nothing
+    /// moves the joint: then every entry is `q_{w,0}`).
+    pub psi: Vec<f64>,
+    /// `d Psi_k / d xi_j` (`[k][j]`, `j` over the kinodynamic parameters).
+    pub d_xi: Vec<Vec<f64>>,
+    /// `d Psi_k / d q_{w,0}`.
+    pub d_q0: Vec<f64>,
+}
+
+/// [`Trajectory`] of `jw` in `win` from `q0` under standardised kinodynamics `xi` (dual numbers
+/// through [`simulate_window`], as [`window_prior`]).
+pub fn window_trajectory(jw: &JointInWindow<'_>, win: &WindowEvidence, q0: f64, xi: &[f64], cfg: &DynamicsConfig) -> Trajectory {
+    match xi.len() {
+        0..=4 => window_trajectory_n::<5>(jw, win, q0, xi, cfg),
+        5..=6 => window_trajectory_n::<7>(jw, win, q0, xi, cfg),
+        7..=10 => window_trajectory_n::<11>(jw, win, q0, xi, cfg),
+        n => panic!("{n} kinodynamic parameters: at most 10 (4 base, 6 of effects)"),
+    }
+}
+
+fn window_trajectory_n<const N: usize>(jw: &JointInWindow<'_>, win: &WindowEvidence, q0: f64, xi: &[f64], cfg: &DynamicsConfig) -> Trajectory {
+    type D<const N: usize> = DualSVec64<N>;
+    let nk = xi.len();
+    let q0_slot = N - 1;
+    let xd: Vec<D<N>> = xi.iter().enumerate().map(|(j, &x)| D::<N>::from_re(x).derivative(j)).collect();
+    let kp = decode(jw.joint.joint, &xd, &jw.effects, cfg);
+    let q0d = D::<N>::from_re(q0).derivative(q0_slot);
+    let traj = simulate_window(jw, win, q0d, &kp, cfg);
+    let k_len = win.frames.len();
+    let mut out = Trajectory { psi: Vec::with_capacity(k_len), d_xi: Vec::with_capacity(k_len), d_q0: Vec::with_capacity(k_len) };
+    for k in 0..k_len {
+        let psi = if k == 0 { q0d } else { traj.as_ref().map_or(q0d, |tr| tr[win.frame_substep[k]]) };
+        let eps = psi.eps.unwrap_generic(nalgebra::Const::<N>, nalgebra::U1);
+        out.psi.push(psi.re);
+        out.d_xi.push((0..nk).map(|j| eps[j]).collect());
+        out.d_q0.push(eps[q0_slot]);
+    }
+    out
+}
+
 /// Observed joint coordinates' variances for [`window_prior`].
 #[derive(Debug, Clone)]
 pub struct Observed {
