@@ -8,7 +8,10 @@
 //! - the **worker** runs BOM-SVI (a blocking task) on the evidence of all windows closed so far and
 //!   hands the posterior back to be published at once; then model criticism, whose findings go
 //!   out on `/bom/model_criticism` (and, when it adopts an effect, the refitted posterior, and the
-//!   effect stays in the model for every later job).
+//!   effect stays in the model for every later job);
+//! - with `nuts.enabled`, **BOM-NUTS** after each job's final SVI fit, in a task of its own so the
+//!   worker goes on: its posterior follows SVI's on `/bom/object_model` (`inference: "nuts"`),
+//!   unless a newer SVI posterior went out meanwhile (one run at a time).
 //!
 //! Queue policy (bounded, nothing dropped silently): the worker has one pending slot. A window
 //! closing while the worker is busy replaces the pending job by one holding every window so far,
@@ -187,6 +190,8 @@ impl Predictor {
 /// refit, when criticism adopted an effect).
 struct Update {
     posterior: Option<Posterior>,
+    /// The sampler's diagnostics when `posterior` is BOM-NUTS's.
+    sampler: Option<crate::inference::nuts::SamplerReport>,
     criticism: Option<crate::criticism::Criticism>,
     job: Arc<Job>,
     closed_at: Instant,
@@ -211,11 +216,12 @@ struct Publishers {
 fn publish_update(p: &Publishers, u: &Update, cfg: &Config, report: &mut NodeReport) {
     let stamp = Time::from_seconds(u.job.windows.last().map(|w| w.end).unwrap_or(0.0));
     if let Some(posterior) = &u.posterior {
-        if u.criticism.is_none() {
+        if u.criticism.is_none() && u.sampler.is_none() {
             report.updates += 1;
             report.latency_s.push(u.closed_at.elapsed().as_secs_f64());
         }
-        let model = messages::object_model(posterior, stamp, &cfg.fixed_frame, u.job.mode, u.job.windows.len() as u32);
+        let inference = if u.sampler.is_some() { "nuts" } else { "svi" };
+        let model = messages::object_model(posterior, stamp, &cfg.fixed_frame, u.job.mode, u.job.windows.len() as u32, inference);
         if let Err(e) = p.model.publish(model) {
             tracing::warn!("publishing the object model failed: {e:?}");
         }
@@ -252,6 +258,74 @@ fn guarded<R: Default>(on: &mut Online, topic: &str, f: impl FnOnce(&mut Online)
     }
 }
 
+/// Shared state of the node's BOM-NUTS runs.
+#[derive(Clone)]
+struct NutsRuns {
+    /// Number of the latest SVI posterior published.
+    latest: Arc<std::sync::atomic::AtomicU64>,
+    /// Whether a NUTS run is in flight (one at a time).
+    busy: Arc<std::sync::atomic::AtomicBool>,
+    panics: Arc<std::sync::atomic::AtomicU64>,
+}
+
+/// BOM-NUTS on a job's final SVI fit (after model criticism), in its own task so that the SVI
+/// worker goes on with the next window: its posterior is published (inference `nuts`) only while
+/// no newer SVI posterior has been (`seq`, the number of the SVI posterior it starts from), so
+/// that a planner never gets an older model after a newer one. One run at a time; a job whose
+/// windows close while one runs keeps SVI's posterior only (said in the log). The sampler's
+/// chains share the cores with the SVI worker.
+#[allow(clippy::too_many_arguments)]
+fn start_nuts(cfg: &Config, job: Arc<Job>, fitted: crate::inference::svi::Fitted, effects: crate::pipeline::Effects, closed_at: Instant, seq: u64, runs: &NutsRuns, tx: &mpsc::Sender<Update>) {
+    use std::sync::atomic::Ordering;
+    if runs.busy.swap(true, Ordering::SeqCst) {
+        tracing::info!("NUTS busy with an earlier posterior: SVI's posterior {seq} stays unsampled");
+        return;
+    }
+    let (cfg, runs, tx) = (cfg.clone(), runs.clone(), tx.clone());
+    tokio::spawn(async move {
+        let j = job.clone();
+        let res = tokio::task::spawn_blocking(move || {
+            let ev = j.evidence(&cfg, &effects);
+            crate::inference::nuts::sample(&ev, &cfg.model, &fitted, &cfg.nuts)
+        })
+        .await;
+        let update = match res {
+            Ok(Ok((posterior, report))) => {
+                for w in &report.warnings {
+                    tracing::warn!("{w}");
+                }
+                if runs.latest.load(Ordering::SeqCst) == seq {
+                    tracing::info!(
+                        "NUTS posterior: R-hat {:.3}, bulk ESS {:.0}, {} divergent, {:.1} s",
+                        report.r_hat_max,
+                        report.ess_bulk_min,
+                        report.divergences,
+                        report.runtime_s
+                    );
+                    Some(Update { posterior: Some(posterior), sampler: Some(report), criticism: None, job, closed_at })
+                } else {
+                    tracing::info!("NUTS posterior of SVI posterior {seq} superseded by a newer SVI posterior: not published");
+                    None
+                }
+            }
+            Ok(Err(e)) => {
+                tracing::warn!("NUTS failed: {e}; the posterior stays SVI's");
+                None
+            }
+            Err(e) => {
+                runs.panics.fetch_add(1, Ordering::Relaxed);
+                tracing::error!("NUTS task failed: {e}; the posterior stays SVI's");
+                None
+            }
+        };
+        if let Some(u) = update {
+            let _ = tx.send(u).await;
+        }
+        // Cleared after the send: the end of the stream waits for both.
+        runs.busy.store(false, Ordering::SeqCst);
+    });
+}
+
 /// Run the node until SIGINT or SIGTERM.
 ///
 /// # Errors
@@ -262,14 +336,16 @@ pub fn run(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
         .enable_all()
         .build()
         .map_err(|e| NodeError::Middleware(format!("tokio runtime: {e}")))?;
-    rt.block_on(run_async(opts))
+    let report = rt.block_on(run_async(opts));
+    // A sampler run abandoned by a second SIGINT must not hold the process.
+    rt.shutdown_timeout(Duration::from_secs(1));
+    report
 }
 
 async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
     let cfg = opts.config.clone();
     if cfg.nuts.enabled {
-        // Not built yet in the node (issue 26): say so instead of ignoring the parameter.
-        tracing::warn!("parameter nuts.enabled: the node publishes BOM-SVI posteriors only; BOM-NUTS runs in `bom replay|eval --inference nuts`");
+        tracing::info!("parameter nuts.enabled: BOM-NUTS runs after each SVI posterior and its posterior follows it on the object model topic (inference \"nuts\")");
     }
     let mw = |e: &dyn std::fmt::Debug| NodeError::Middleware(format!("{e:?}"));
     let context = Context::from_domain_participant(participant_from_env()?).map_err(|e| mw(&e))?;
@@ -324,8 +400,13 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
     let wake = Arc::new(Notify::new());
     let (done_tx, mut done_rx) = mpsc::channel::<Update>(4);
     let worker_panics = Arc::new(std::sync::atomic::AtomicU64::new(0));
+    let nuts_busy = Arc::new(std::sync::atomic::AtomicBool::new(false));
     {
         let (slot, wake, cfg, panics) = (slot.clone(), wake.clone(), cfg.clone(), worker_panics.clone());
+        let c_nuts = cfg.clone();
+        // The number of the latest SVI posterior, and whether a NUTS run is in flight.
+        let latest = Arc::new(std::sync::atomic::AtomicU64::new(0));
+        let nuts_runs = NutsRuns { latest: latest.clone(), busy: nuts_busy.clone(), panics: panics.clone() };
         tokio::spawn(async move {
             let mut warm: Option<GuideState> = None;
             // Effects model criticism adopted, kept for every later update.
@@ -358,7 +439,8 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
                         continue;
                     }
                 };
-                let first = Update { posterior: Some(fitted.1.posterior.clone()), criticism: None, job: job.clone(), closed_at };
+                let seq = latest.fetch_add(1, std::sync::atomic::Ordering::SeqCst) + 1;
+                let first = Update { posterior: Some(fitted.1.posterior.clone()), sampler: None, criticism: None, job: job.clone(), closed_at };
                 if done_tx.send(first).await.is_err() {
                     break;
                 }
@@ -371,10 +453,14 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
                 .await;
                 let update = match res {
                     Ok((fitted, criticism, refit, fx)) => {
-                        effects = fx;
                         let posterior = refit.as_ref().map(|r| r.posterior.clone());
-                        warm = Some(refit.map_or(fitted.guide, |r| r.guide));
-                        Some(Update { posterior, criticism: Some(criticism), job, closed_at })
+                        let fitted = refit.unwrap_or(fitted);
+                        if c_nuts.nuts.enabled {
+                            start_nuts(&c_nuts, job.clone(), fitted.clone(), fx.clone(), closed_at, seq, &nuts_runs, &done_tx);
+                        }
+                        effects = fx;
+                        warm = Some(fitted.guide);
+                        Some(Update { posterior, sampler: None, criticism: Some(criticism), job, closed_at })
                     }
                     Err(e) => {
                         panics.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
@@ -503,9 +589,10 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
         submit(&on, &mut report);
     }
     loop {
+        // The last model includes a BOM-NUTS run in flight (a second SIGINT abandons it).
         let idle = {
             let s = slot.lock().expect("slot lock");
-            s.job.is_none() && !s.busy
+            s.job.is_none() && !s.busy && !nuts_busy.load(std::sync::atomic::Ordering::SeqCst)
         };
         if idle && done_rx.is_empty() {
             break;

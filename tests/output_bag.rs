@@ -79,3 +79,35 @@ fn model_criticism_reaches_json_bag_and_plots() {
     let svg = std::fs::read_to_string(plots.join("part2_joint_limit.svg")).unwrap();
     assert!(svg.starts_with("<svg") && svg.contains("predicted after") && svg.matches("<circle").count() > 20);
 }
+
+/// `--inference nuts`: the output bag carries SVI's object models and then, stamped as the last
+/// of them, BOM-NUTS's (`inference` "nuts", the JSON's joint type and axis), as the node
+/// publishes them.
+#[test]
+fn nuts_posterior_follows_svi_in_the_output_bag() {
+    let dir = tempfile::tempdir().unwrap();
+    let (out, json, cfg) = (dir.path().join("out.mcap"), dir.path().join("out.json"), dir.path().join("cfg.yaml"));
+    std::fs::write(&cfg, "nuts:\n  chains: 2\n  tune: 200\n  draws: 200\n").unwrap();
+    let (code, _, stderr) = bom(&[
+        "replay", "bags/sturm/left_door_001.mcap", "--inference", "nuts", "--config", cfg.to_str().unwrap(),
+        "--out", out.to_str().unwrap(), "--json", json.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{stderr}");
+    let summary: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert_eq!(summary["model"]["inference"], "nuts");
+    let mut diag = bom::diagnostics::Diagnostics::default();
+    let bag = bom::input::read_bag(&out, &mut diag).unwrap();
+    let models: Vec<(u64, ObjectModel)> =
+        bag.messages.iter().filter(|m| m.topic == "/bom/object_model").map(|m| (m.log_time, decode_cdr(&m.data).unwrap())).collect();
+    assert_eq!(models.len(), summary["windows"].as_array().unwrap().len() + 1);
+    let (last, svi) = (&models[models.len() - 1], &models[models.len() - 2]);
+    assert_eq!(svi.1.inference, "svi");
+    assert_eq!(last.1.inference, "nuts");
+    assert_eq!(last.0, svi.0, "stamped as the SVI posterior it samples from");
+    let joint = &summary["model"]["joints"][0];
+    assert_eq!(last.1.joints[0].most_probable_type, "revolute");
+    assert!((last.1.joints[0].p_revolute - joint["type_probs"]["revolute"].as_f64().unwrap()).abs() < 1e-12);
+    let d = last.1.joints[0].axis_direction;
+    let dir_json: Vec<f64> = joint["axis"]["direction"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
+    assert!((d.x - dir_json[0]).abs() + (d.y - dir_json[1]).abs() + (d.z - dir_json[2]).abs() < 1e-12);
+}

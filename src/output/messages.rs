@@ -24,9 +24,9 @@ fn estimate(e: Option<&Estimate>) -> ParameterEstimate {
     e.map(|e| ParameterEstimate { known: true, median: e.median, sd: e.sd, q05: e.q05, q95: e.q95 }).unwrap_or_else(unknown)
 }
 
-/// `bom_msgs/ObjectModel` of a posterior. Kinodynamic parameters are unknown in kinematic mode
-/// and for rigid joints.
-pub fn object_model(p: &Posterior, stamp: Time, fixed_frame: &str, mode: &str, num_windows: u32) -> ObjectModel {
+/// `bom_msgs/ObjectModel` of a posterior; `inference` names the algorithm that gave it (`svi`,
+/// `nuts`). Kinodynamic parameters are unknown in kinematic mode and for rigid joints.
+pub fn object_model(p: &Posterior, stamp: Time, fixed_frame: &str, mode: &str, num_windows: u32, inference: &str) -> ObjectModel {
     let joints = p
         .joints
         .iter()
@@ -57,7 +57,7 @@ pub fn object_model(p: &Posterior, stamp: Time, fixed_frame: &str, mode: &str, n
     ObjectModel {
         header: Header { stamp, frame_id: fixed_frame.into() },
         mode: mode.into(),
-        inference: "svi".into(),
+        inference: inference.into(),
         runtime_s: p.runtime_s,
         elbo: p.elbo,
         num_windows,

@@ -33,7 +33,7 @@ pub fn write_replay_bag(run: &Run, path: &Path, cfg: &Config) -> Result<(), Stri
     let frame = &cfg.fixed_frame;
     for u in &run.updates {
         let stamp = Time::from_seconds(u.stamp);
-        let model = messages::object_model(&u.posterior, stamp, frame, run.mode, u.num_windows as u32);
+        let model = messages::object_model(&u.posterior, stamp, frame, run.mode, u.num_windows as u32, "svi");
         w.write("/bom/object_model", "bom_msgs/msg/ObjectModel", stamp.nanos(), &model).map_err(err)?;
         let markers = messages::markers(&u.posterior, stamp, frame);
         w.write("/bom/markers", "visualization_msgs/msg/MarkerArray", stamp.nanos(), &markers).map_err(err)?;
@@ -41,6 +41,12 @@ pub fn write_replay_bag(run: &Run, path: &Path, cfg: &Config) -> Result<(), Stri
             let msg = messages::model_criticism(&u.criticism.findings, stamp, frame);
             w.write("/bom/model_criticism", "bom_msgs/msg/ModelCriticism", stamp.nanos(), &msg).map_err(err)?;
         }
+    }
+    // BOM-NUTS's posterior of the last update follows it, as in the node.
+    if let (Some(_), Some(p), Some(last)) = (&run.sampler, &run.posterior, run.updates.last()) {
+        let stamp = Time::from_seconds(last.stamp);
+        let model = messages::object_model(p, stamp, frame, run.mode, last.num_windows as u32, "nuts");
+        w.write("/bom/object_model", "bom_msgs/msg/ObjectModel", stamp.nanos(), &model).map_err(err)?;
     }
     if let Some(first) = run.updates.first() {
         // Frames: every stamp at which some part was seen.

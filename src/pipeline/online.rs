@@ -530,6 +530,11 @@ impl Job {
         super::fit_update(self.source(), effects, cfg, warm)
     }
 
+    /// The evidence of the job's windows under `effects` (as [`Job::fit`] builds it).
+    pub fn evidence(&self, cfg: &Config, effects: &super::Effects) -> Evidence {
+        self.source().evidence(effects, cfg)
+    }
+
     /// The second half: model criticism of `fitted`, and the refit when it adopts an effect.
     pub fn criticise(&self, ev: &Evidence, fitted: &svi::Fitted, cfg: &Config, effects: &mut super::Effects) -> (Criticism, Option<svi::Fitted>) {
         super::criticise_update(self.source(), ev, fitted, effects, cfg)

@@ -32,6 +32,10 @@ else
 fi
 status=0
 python tests/ros/interop.py --bom target/release/bom --bag bags/mujoco/drawer_limit_undeclared.mcap || status=$?
+# BOM-NUTS in the node (issue 26), on a real door track (kinematic mode: seconds of sampling).
+printf 'bom:\n  ros__parameters:\n    nuts:\n      enabled: true\n' > target/interop-nuts.yaml
+python tests/ros/interop.py --bom target/release/bom --bag bags/sturm/left_door_001.mcap \
+  --params-file target/interop-nuts.yaml --log target/interop-node-nuts.log --expect-nuts || status=$?
 for c in "${CAPS[@]}"; do
   dev=${c%%:*}; pid=${c##*:}
   kill -INT "$pid" 2>/dev/null || true
