@@ -143,18 +143,31 @@ fn load_config(path: Option<&PathBuf>) -> Result<Config, ExitCode> {
 }
 
 /// `bom eval --corpus`: the aggregate table on stdout, the report as JSON.
-fn eval_corpus(corpus: &std::path::Path, split: &str, layout: LayoutArg, jobs: usize, config: Option<&PathBuf>, json: Option<&PathBuf>) -> ExitCode {
+#[allow(clippy::too_many_arguments)]
+fn eval_corpus(
+    corpus: &std::path::Path,
+    split: &str,
+    layout: LayoutArg,
+    jobs: usize,
+    config: Option<&PathBuf>,
+    json: Option<&PathBuf>,
+    inference: InferenceArg,
+    baselines: bool,
+) -> ExitCode {
     use bom::eval::corpus::{self, Layout};
-    let cfg = match load_config(config) {
+    let mut cfg = match load_config(config) {
         Ok(c) => c,
         Err(code) => return code,
     };
+    if inference == InferenceArg::Nuts {
+        cfg.nuts.enabled = true;
+    }
     let layouts = match layout {
         LayoutArg::Continuous => vec![Layout::Continuous],
         LayoutArg::Episodes => vec![Layout::Episodes],
         LayoutArg::Both => vec![Layout::Continuous, Layout::Episodes],
     };
-    let report = match corpus::run(corpus, split, &layouts, &cfg, jobs) {
+    let report = match corpus::run(corpus, split, &layouts, &cfg, jobs, baselines) {
         Ok(r) => r,
         Err(e) => {
             eprintln!("error: {e}");
@@ -268,7 +281,7 @@ fn main() -> ExitCode {
     match cli.command {
         Command::Eval { bags, config, inference, json, baselines, corpus, split, layout, jobs } => {
             if let Some(corpus) = corpus {
-                return eval_corpus(&corpus, &split, layout, jobs, config.as_ref(), json.as_ref());
+                return eval_corpus(&corpus, &split, layout, jobs, config.as_ref(), json.as_ref(), inference, baselines);
             }
             let input = ReplayInput { bags, config, inference };
             let (run, cfg) = match replay(&input) {
@@ -285,12 +298,7 @@ fn main() -> ExitCode {
                 return ExitCode::from(EXIT_INPUT);
             };
             let mut metrics = eval::evaluate(gt, post, baselines);
-            if let (Some(b), false) = (metrics.baselines.as_mut(), run.windows.is_empty() || run.wrenches.is_empty()) {
-                use bom::eval::baselines::{diff_sim, Start};
-                let ev = pipeline::final_evidence(&run, &cfg);
-                b.diff_sim = Some(diff_sim(&ev, gt, &cfg.model, Start::Median));
-                b.diff_sim_tail_init = Some(diff_sim(&ev, gt, &cfg.model, Start::LowerTail));
-            }
+            eval::add_diff_sim(&mut metrics, &run, gt, &cfg);
             print!("{}", output::table::render(&run));
             print!("{}", eval::render(&metrics));
             if let Some(path) = json {

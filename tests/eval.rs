@@ -138,3 +138,41 @@ fn a_corpus_is_scored_and_bad_objects_are_skipped() {
     // One line per skipped object on stderr.
     assert_eq!(stderr.lines().filter(|l| l.starts_with("warning: skipped")).count(), 2, "{stderr}");
 }
+
+/// `bom eval --corpus --inference nuts --baselines`: every object is scored on BOM-NUTS and on
+/// the BOM-SVI posterior it started from, in one run; the report has the paper's Table 1 (BOM-SVI,
+/// BOM-NUTS, Disconnected, Clique on the same objects; no diff-sim rows in kinematic mode) and
+/// SVI's 90% intervals against NUTS's.
+#[test]
+fn a_corpus_gets_table_1_with_svi_and_nuts_side_by_side() {
+    let dir = tempfile::tempdir().unwrap();
+    for (name, bag) in [("a_drawer", "bags/sturm/drawer_001.mcap"), ("b_door", "bags/sturm/left_door_001.mcap")] {
+        std::fs::create_dir_all(dir.path().join(name)).unwrap();
+        std::fs::copy(bag, dir.path().join(name).join("track.mcap")).unwrap();
+    }
+    let cfg = dir.path().join("nuts.yaml");
+    std::fs::write(&cfg, "nuts:\n  chains: 2\n  tune: 200\n  draws: 200\n").unwrap();
+    let json = dir.path().join("t1.json");
+    let (code, stdout, stderr) = bom(&[
+        "eval", "--corpus", dir.path().to_str().unwrap(), "--inference", "nuts", "--baselines",
+        "--config", cfg.to_str().unwrap(), "--json", json.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{stderr}");
+    let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let rows = r["table1"].as_array().expect("a Table 1");
+    let methods: Vec<&str> = rows.iter().map(|m| m["method"].as_str().unwrap()).collect();
+    assert_eq!(methods, ["BOM-SVI", "BOM-NUTS", "Disconnected", "Clique"], "{r}");
+    for m in &rows[..2] {
+        assert_eq!(m["joint_accuracy"], 1.0, "{m}");
+        assert!(m["graph_mse"].as_f64().unwrap() < 0.05, "{m}");
+    }
+    assert!(rows[0]["runtime_s_median"].as_f64().unwrap() < rows[1]["runtime_s_median"].as_f64().unwrap(), "NUTS runs after SVI");
+    for o in r["objects"].as_array().unwrap() {
+        assert!(o["svi"]["per_part"].is_array() && o["sampler"]["r_hat_max"].is_f64(), "{o}");
+    }
+    let c = &r["svi_vs_nuts"];
+    assert_eq!(c["parameters"], 2, "one axis cone per movable part: {c}");
+    assert_eq!(c["joint_type_disagreements"], 0, "{c}");
+    assert!(c["width_ratio_median"].as_f64().unwrap() > 0.0, "{c}");
+    assert!(stdout.contains("Table 1") && stdout.contains("SVI vs NUTS"), "{stdout}");
+}

@@ -18,6 +18,11 @@
 //!   both over- and under-confidence show;
 //! - wrong calls at `P >= 0.95`: parts whose most probable joint type is wrong with probability
 //!   at least 0.95 (likewise parents).
+//!
+//! With `--inference nuts` every object is also scored on its BOM-SVI posterior (the one NUTS
+//! starts from, same run), and with `--baselines` on the paper's baselines; the report then has
+//! the paper's Table 1 (`table1`, one row per method on the same objects) and, with NUTS, SVI's
+//! 90% intervals against NUTS's (`svi_vs_nuts`, issue 26).
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -135,6 +140,54 @@ pub struct ObjectRow {
     pub runtime_s: f64,
     pub metrics: Metrics,
     pub calls: Vec<PartCall>,
+    /// With BOM-NUTS: the metrics of the BOM-SVI posterior it started from, SVI's share of the
+    /// runtime, and the sampler's diagnostics (`metrics` are then NUTS's).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub svi: Option<Metrics>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub svi_runtime_s: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sampler: Option<SamplerRow>,
+}
+
+/// BOM-NUTS's diagnostics of one object (as the JSON's `model.sampler`).
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct SamplerRow {
+    pub r_hat_max: f64,
+    pub ess_bulk_min: f64,
+    pub divergences: u64,
+    /// Sampling draws, all chains and structures.
+    pub draws: u64,
+    pub runtime_s: f64,
+}
+
+/// One row of the paper's Table 1 over the scored objects (medians and means as in
+/// [`Aggregate`]; a metric a method cannot score is `None`).
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct Table1Row {
+    pub method: String,
+    pub joint_accuracy: Option<f64>,
+    pub graph_mse: Option<f64>,
+    pub ide: Option<f64>,
+    pub axis_angle_deg: Option<f64>,
+    pub coverage_fraction: Option<f64>,
+    pub runtime_s_median: Option<f64>,
+}
+
+/// BOM-SVI's 90% intervals against BOM-NUTS's on the same objects (issue 26): per parameter
+/// (damping, friction: interval width; axis direction: radius of the 90% cone) where both
+/// posteriors call the part movable, the ratio SVI / NUTS, and each method's coverage of the
+/// truth on those parameters.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct IntervalComparison {
+    pub parameters: usize,
+    pub width_ratio_median: Option<f64>,
+    /// Parameters whose SVI interval is narrower than a third of NUTS's.
+    pub narrower_than_third: usize,
+    pub coverage_svi: [usize; 2],
+    pub coverage_nuts: [usize; 2],
+    /// Parts whose most probable joint type differs between the two.
+    pub joint_type_disagreements: usize,
 }
 
 /// A bin of the reliability table.
@@ -213,11 +266,16 @@ pub struct CorpusReport {
     pub aggregate: Vec<Aggregate>,
     /// With both layouts: how often they agree.
     pub agreement: Option<Agreement>,
+    /// With NUTS or baselines: the paper's Table 1 on the first layout's objects.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub table1: Option<Vec<Table1Row>>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub svi_vs_nuts: Option<IntervalComparison>,
     pub objects: Vec<ObjectRow>,
 }
 
 /// Score one object's bags: replay, then [`evaluate`] against its ground truth.
-fn score(o: &CorpusObject, layout: Layout, cfg: &Config) -> Result<ObjectRow, String> {
+fn score(o: &CorpusObject, layout: Layout, cfg: &Config, baselines: bool) -> Result<ObjectRow, String> {
     let bags = match layout {
         Layout::Continuous => &o.continuous,
         Layout::Episodes => &o.episodes,
@@ -230,7 +288,18 @@ fn score(o: &CorpusObject, layout: Layout, cfg: &Config) -> Result<ObjectRow, St
     let runtime_s = t.elapsed().as_secs_f64();
     let gt = run.ground_truth.as_ref().ok_or_else(|| format!("{}: no 'bom_ground_truth' metadata record", o.name))?;
     let post = run.posterior.as_ref().ok_or_else(|| format!("{}: no posterior (no part seen inside a window)", o.name))?;
-    let metrics = evaluate(gt, post, false);
+    let mut metrics = evaluate(gt, post, baselines);
+    if baselines {
+        super::add_diff_sim(&mut metrics, &run, gt, cfg);
+    }
+    let svi_post = run.sampler.as_ref().and_then(|_| run.updates.last()).map(|u| &u.posterior);
+    let sampler = run.sampler.as_ref().map(|r| SamplerRow {
+        r_hat_max: r.r_hat_max,
+        ess_bulk_min: r.ess_bulk_min,
+        divergences: r.divergences,
+        draws: r.chains as u64 * r.draws * r.structures.len() as u64,
+        runtime_s: r.runtime_s,
+    });
     let calls = metrics
         .per_part
         .iter()
@@ -241,7 +310,19 @@ fn score(o: &CorpusObject, layout: Layout, cfg: &Config) -> Result<ObjectRow, St
             PartCall { label: m.label, true_joint: m.true_joint.clone(), type_probs, joint_correct: m.joint_correct, parent_prob, parent_correct: m.parent_correct }
         })
         .collect();
-    Ok(ObjectRow { name: o.name.clone(), split: o.split.clone(), family: o.family.clone(), layout, bags: bags.clone(), runtime_s, metrics, calls })
+    Ok(ObjectRow {
+        name: o.name.clone(),
+        split: o.split.clone(),
+        family: o.family.clone(),
+        layout,
+        bags: bags.clone(),
+        runtime_s,
+        metrics,
+        calls,
+        svi: svi_post.map(|p| evaluate(gt, p, false)),
+        svi_runtime_s: sampler.as_ref().map(|r| runtime_s - r.runtime_s),
+        sampler,
+    })
 }
 
 /// The calibration of a set of part calls (module docs).
@@ -333,6 +414,90 @@ pub fn aggregate(rows: &[&ObjectRow]) -> Aggregate {
     }
 }
 
+/// The paper's Table 1 over `rows` (module docs): BOM-SVI (its posterior before NUTS where NUTS
+/// ran), BOM-NUTS, and with baselines Diff. sim., Diff. sim. tail init (IdE and runtime),
+/// Disconnected and Clique (graph MSE).
+pub fn table1(rows: &[&ObjectRow]) -> Vec<Table1Row> {
+    let frac = |k: usize, n: usize| (n > 0).then(|| k as f64 / n as f64);
+    let scored = |method: &str, ms: &[&Metrics], times: Vec<f64>| {
+        let pm: Vec<&super::PartMetrics> = ms.iter().flat_map(|m| m.per_part.iter()).collect();
+        let movable = |m: &&&super::PartMetrics| JointType::parse(&m.true_joint).is_some_and(|t| t.movable());
+        let cov = ms.iter().fold([0, 0], |a, m| [a[0] + m.coverage.all[0], a[1] + m.coverage.all[1]]);
+        Table1Row {
+            method: method.into(),
+            joint_accuracy: frac(pm.iter().filter(|m| m.joint_correct).count(), pm.len()),
+            graph_mse: (!ms.is_empty()).then(|| ms.iter().map(|m| m.graph_mse).sum::<f64>() / ms.len() as f64),
+            ide: median(pm.iter().filter(movable).flat_map(|m| [m.damping_rel_error, m.friction_rel_error]).flatten().collect()),
+            axis_angle_deg: median(pm.iter().filter(movable).filter_map(|m| m.axis_angle_deg).collect()),
+            coverage_fraction: frac(cov[0], cov[1]),
+            runtime_s_median: median(times),
+        }
+    };
+    let nuts = rows.iter().any(|r| r.sampler.is_some());
+    let svi: Vec<&Metrics> = rows.iter().map(|r| r.svi.as_ref().unwrap_or(&r.metrics)).collect();
+    let mut out = vec![scored("BOM-SVI", &svi, rows.iter().map(|r| r.svi_runtime_s.unwrap_or(r.runtime_s)).collect())];
+    if nuts {
+        let with: Vec<&&ObjectRow> = rows.iter().filter(|r| r.sampler.is_some()).collect();
+        out.push(scored("BOM-NUTS", &with.iter().map(|r| &r.metrics).collect::<Vec<_>>(), with.iter().map(|r| r.runtime_s).collect()));
+    }
+    let bl: Vec<&super::Baselines> = rows.iter().filter_map(|r| r.metrics.baselines.as_ref()).collect();
+    if !bl.is_empty() {
+        let empty = |method: &str| Table1Row { method: method.into(), joint_accuracy: None, graph_mse: None, ide: None, axis_angle_deg: None, coverage_fraction: None, runtime_s_median: None };
+        for (name, pick) in [("Diff. sim.", 0), ("Diff. sim. tail init", 1)] {
+            let rows: Vec<&super::baselines::DiffSimRow> = bl.iter().filter_map(|b| if pick == 0 { b.diff_sim.as_ref() } else { b.diff_sim_tail_init.as_ref() }).collect();
+            if rows.is_empty() {
+                continue;
+            }
+            let mut r = empty(name);
+            r.ide = median(rows.iter().flat_map(|d| d.parts.iter().flat_map(|p| [p.damping_rel_error, p.friction_rel_error])).flatten().collect());
+            r.runtime_s_median = median(rows.iter().map(|d| d.runtime_s).collect());
+            out.push(r);
+        }
+        let mean = |v: Vec<f64>| (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64);
+        let mut r = empty("Disconnected");
+        r.graph_mse = mean(bl.iter().map(|b| b.disconnected.graph_mse).collect());
+        out.push(r);
+        let mut r = empty("Clique");
+        r.graph_mse = mean(bl.iter().map(|b| b.clique.graph_mse).collect());
+        out.push(r);
+    }
+    out
+}
+
+/// SVI's 90% intervals against NUTS's on the objects NUTS sampled ([`IntervalComparison`]).
+pub fn svi_vs_nuts(rows: &[&ObjectRow]) -> IntervalComparison {
+    let mut c = IntervalComparison { parameters: 0, width_ratio_median: None, narrower_than_third: 0, coverage_svi: [0, 0], coverage_nuts: [0, 0], joint_type_disagreements: 0 };
+    let mut ratios = Vec::new();
+    for r in rows.iter().filter(|r| r.sampler.is_some()) {
+        let Some(svi) = &r.svi else { continue };
+        for n in &r.metrics.per_part {
+            let Some(s) = svi.per_part.iter().find(|s| s.label == n.label) else { continue };
+            c.joint_type_disagreements += (s.estimated_joint != n.estimated_joint) as usize;
+            let width = |iv: Option<[f64; 2]>| iv.map(|[lo, hi]| hi - lo);
+            let pairs = [
+                (width(s.damping_interval), width(n.damping_interval), s.damping_covered, n.damping_covered),
+                (width(s.friction_interval), width(n.friction_interval), s.friction_covered, n.friction_covered),
+                (s.axis_cone_deg, n.axis_cone_deg, s.axis_covered, n.axis_covered),
+            ];
+            for (ws, wn, cs, cn) in pairs {
+                let (Some(ws), Some(wn)) = (ws, wn) else { continue };
+                if !(wn > 0.0 && ws.is_finite()) {
+                    continue;
+                }
+                c.parameters += 1;
+                ratios.push(ws / wn);
+                c.narrower_than_third += (ws < wn / 3.0) as usize;
+                if let (Some(a), Some(b)) = (cs, cn) {
+                    c.coverage_svi = [c.coverage_svi[0] + a as usize, c.coverage_svi[1] + 1];
+                    c.coverage_nuts = [c.coverage_nuts[0] + b as usize, c.coverage_nuts[1] + 1];
+                }
+            }
+        }
+    }
+    c.width_ratio_median = median(ratios);
+    c
+}
+
 /// Agreement of the MAP joint types between the continuous and the episode replays of the same
 /// objects (by object name and part label).
 pub fn agreement(rows: &[ObjectRow]) -> Agreement {
@@ -355,7 +520,7 @@ pub fn agreement(rows: &[ObjectRow]) -> Agreement {
 ///
 /// # Errors
 /// [`CorpusError`] when the corpus cannot be listed.
-pub fn run(corpus: &Path, split: &str, layouts: &[Layout], cfg: &Config, jobs: usize) -> Result<CorpusReport, CorpusError> {
+pub fn run(corpus: &Path, split: &str, layouts: &[Layout], cfg: &Config, jobs: usize, baselines: bool) -> Result<CorpusReport, CorpusError> {
     let objects: Vec<CorpusObject> = list(corpus)?.into_iter().filter(|o| split == "all" || o.split == split).collect();
     let tasks: Vec<(usize, Layout)> = layouts.iter().flat_map(|&l| (0..objects.len()).map(move |i| (i, l))).collect();
     let next = AtomicUsize::new(0);
@@ -365,7 +530,7 @@ pub fn run(corpus: &Path, split: &str, layouts: &[Layout], cfg: &Config, jobs: u
             s.spawn(|| loop {
                 let k = next.fetch_add(1, Ordering::SeqCst);
                 let Some(&(i, layout)) = tasks.get(k) else { break };
-                let r = score(&objects[i], layout, cfg);
+                let r = score(&objects[i], layout, cfg, baselines);
                 match &r {
                     Ok(row) => eprintln!(
                         "[{}/{}] {} ({:?}): joints {}/{} right, {:.1} s",
@@ -395,6 +560,9 @@ pub fn run(corpus: &Path, split: &str, layouts: &[Layout], cfg: &Config, jobs: u
     }
     let aggregate = layouts.iter().map(|l| aggregate(&rows.iter().filter(|r| r.layout == *l).collect::<Vec<_>>())).collect();
     let agreement = (layouts.len() > 1).then(|| agreement(&rows));
+    let first: Vec<&ObjectRow> = rows.iter().filter(|r| Some(&r.layout) == layouts.first()).collect();
+    let table1 = (cfg.nuts.enabled || baselines).then(|| table1(&first));
+    let svi_vs_nuts = cfg.nuts.enabled.then(|| svi_vs_nuts(&first));
     Ok(CorpusReport {
         corpus: corpus.display().to_string(),
         split: split.into(),
@@ -404,6 +572,8 @@ pub fn run(corpus: &Path, split: &str, layouts: &[Layout], cfg: &Config, jobs: u
         skipped,
         aggregate,
         agreement,
+        table1,
+        svi_vs_nuts,
         objects: rows,
     })
 }
@@ -461,6 +631,37 @@ pub fn render(r: &CorpusReport) -> String {
     }
     if let Some(g) = &r.agreement {
         let _ = writeln!(s, "  continuous vs episodes: same joint type on {}/{} parts ({}) of {} objects", g.same_joint_type, g.parts, opt(g.fraction, 3), g.objects);
+    }
+    if let Some(t) = &r.table1 {
+        let _ = writeln!(s, "  Table 1 ({} layout):", r.layouts.first().map(|l| format!("{l:?}").to_lowercase()).unwrap_or_default());
+        let _ = writeln!(s, "  {:<22} {:>7} {:>8} {:>7} {:>7} {:>7} {:>9}", "method", "joint", "gMSE", "IdE", "axis°", "cov90", "time [s]");
+        for row in t {
+            let _ = writeln!(
+                s,
+                "  {:<22} {:>7} {:>8} {:>7} {:>7} {:>7} {:>9}",
+                row.method,
+                opt(row.joint_accuracy, 3),
+                opt(row.graph_mse, 4),
+                opt(row.ide, 3),
+                opt(row.axis_angle_deg, 2),
+                opt(row.coverage_fraction, 3),
+                opt(row.runtime_s_median, 2)
+            );
+        }
+    }
+    if let Some(c) = &r.svi_vs_nuts {
+        let _ = writeln!(
+            s,
+            "  SVI vs NUTS 90% intervals: {} parameters, width ratio median {}, narrower than a third {}, coverage SVI {}/{} NUTS {}/{}, joint types differ on {} parts",
+            c.parameters,
+            opt(c.width_ratio_median, 2),
+            c.narrower_than_third,
+            c.coverage_svi[0],
+            c.coverage_svi[1],
+            c.coverage_nuts[0],
+            c.coverage_nuts[1],
+            c.joint_type_disagreements
+        );
     }
     s
 }

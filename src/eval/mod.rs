@@ -245,6 +245,17 @@ pub fn evaluate(gt: &GroundTruth, post: &Posterior, baselines: bool) -> Metrics 
     }
 }
 
+/// Add the differentiable-simulation baselines ([`baselines::diff_sim`], from the priors'
+/// medians and from their 1% tails) to `metrics.baselines` when there are some and `run` is in
+/// dynamic mode (windows with wrenches); otherwise nothing.
+pub fn add_diff_sim(metrics: &mut Metrics, run: &crate::pipeline::Run, gt: &GroundTruth, cfg: &crate::config::Config) {
+    if let (Some(b), false) = (metrics.baselines.as_mut(), run.windows.is_empty() || run.wrenches.is_empty()) {
+        let ev = crate::pipeline::final_evidence(run, cfg);
+        b.diff_sim = Some(baselines::diff_sim(&ev, gt, &cfg.model, baselines::Start::Median));
+        b.diff_sim_tail_init = Some(baselines::diff_sim(&ev, gt, &cfg.model, baselines::Start::LowerTail));
+    }
+}
+
 /// A readable table of the metrics.
 pub fn render(m: &Metrics) -> String {
     use std::fmt::Write;
