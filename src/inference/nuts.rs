@@ -348,6 +348,7 @@ fn sample_structure(ev: &Evidence, model: &ModelConfig, structure: &Structure, g
                     let x0 = start_from_guide(&density, guide, &mut rng);
                     let logp = Logp { blocks: blocks.clone(), density: NonCentred::new(density, cfg.non_centred) };
                     let z0 = logp.to_sampler(&logp.density.from_model(&x0));
+                    // The chain owns `logp`; draws are mapped back to the model by a view of its own.
                     let map = NonCentred::new(Density::new(ev, model, structure.clone()), cfg.non_centred);
                     let math = CpuMath::new(logp);
                     let mut nrng = NutsRng::seed_from_u64(seed.wrapping_add(7919 * c as u64 + 1));
