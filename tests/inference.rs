@@ -22,6 +22,25 @@ fn drawer() -> (Config, bom::model::likelihood::Evidence, svi::Fitted) {
     (cfg, ev, fitted)
 }
 
+/// The entries `dims` of the gradient `g` of `f` at `x` that disagree with central differences
+/// of its value (step 1e-5, relative tolerance 1e-3 of the larger, at least 10):
+/// `(index, gradient, difference)`.
+fn mismatches(f: impl Fn(&[f64], &mut [f64]) -> f64, x: &[f64], g: &[f64], dims: &[usize]) -> Vec<(usize, f64, f64)> {
+    let mut scratch = vec![0.0; x.len()];
+    let mut bad = Vec::new();
+    for &k in dims {
+        let h = 1e-5;
+        let (mut a, mut b) = (x.to_vec(), x.to_vec());
+        a[k] += h;
+        b[k] -= h;
+        let fd = (f(&a, &mut scratch) - f(&b, &mut scratch)) / (2.0 * h);
+        if (fd - g[k]).abs() > 1e-3 * fd.abs().max(g[k].abs()).max(10.0) {
+            bad.push((k, g[k], fd));
+        }
+    }
+    bad
+}
+
 fn map_structure(fitted: &svi::Fitted) -> Structure {
     let joints = &fitted.posterior.joints;
     Structure { parent: joints.iter().map(|j| j.parent_index).collect(), types: joints.iter().map(|j| j.map_type).collect() }
@@ -51,18 +70,7 @@ fn density_gradient_matches_finite_differences() {
         }
     }
     assert!(dims.len() > 10);
-    let mut scratch = vec![0.0; density.dim()];
-    let mut bad = Vec::new();
-    for &k in &dims {
-        let h = 1e-5;
-        let (mut a, mut b) = (x.clone(), x.clone());
-        a[k] += h;
-        b[k] -= h;
-        let fd = (density.log_density(&a, &mut scratch) - density.log_density(&b, &mut scratch)) / (2.0 * h);
-        if (fd - g[k]).abs() > 1e-3 * fd.abs().max(g[k].abs()).max(10.0) {
-            bad.push((k, g[k], fd));
-        }
-    }
+    let bad = mismatches(|v, gr| density.log_density(v, gr), &x, &g, &dims);
     assert!(bad.is_empty(), "gradient vs central differences (index, gradient, fd): {bad:?}");
 }
 
@@ -96,18 +104,7 @@ fn non_centred_density_gradient_matches_finite_differences() {
             dims.extend(ev.windows.iter().flat_map(|w| [o + w.frames[0], o + w.frames[w.frames.len() / 2]]));
         }
     }
-    let mut scratch = vec![0.0; density.dim()];
-    let mut bad = Vec::new();
-    for &k in &dims {
-        let h = 1e-5;
-        let (mut a, mut b) = (y.clone(), y.clone());
-        a[k] += h;
-        b[k] -= h;
-        let fd = (nc.log_density(&a, &mut scratch) - nc.log_density(&b, &mut scratch)) / (2.0 * h);
-        if (fd - g[k]).abs() > 1e-3 * fd.abs().max(g[k].abs()).max(10.0) {
-            bad.push((k, g[k], fd));
-        }
-    }
+    let bad = mismatches(|v, gr| nc.log_density(v, gr), &y, &g, &dims);
     assert!(bad.is_empty(), "gradient vs central differences (index, gradient, fd): {bad:?}");
 }
 

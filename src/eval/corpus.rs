@@ -377,6 +377,31 @@ pub fn calibration(calls: &[&PartCall]) -> Calibration {
     }
 }
 
+/// Metrics of several objects pooled: joint accuracy over all parts, the mean of the objects'
+/// graph MSE, medians over all movable parts (IdE, axis angle) and revolute axes (offset), and
+/// the 90% intervals' coverage summed.
+struct Pooled {
+    joint_accuracy: Option<f64>,
+    graph_mse: Option<f64>,
+    ide: Option<f64>,
+    axis_angle_deg: Option<f64>,
+    axis_offset_m: Option<f64>,
+    coverage: [usize; 2],
+}
+
+fn pooled(ms: &[&Metrics]) -> Pooled {
+    let pm: Vec<&super::PartMetrics> = ms.iter().flat_map(|m| m.per_part.iter()).collect();
+    let movable = |m: &&&super::PartMetrics| JointType::parse(&m.true_joint).is_some_and(|t| t.movable());
+    Pooled {
+        joint_accuracy: (!pm.is_empty()).then(|| pm.iter().filter(|m| m.joint_correct).count() as f64 / pm.len() as f64),
+        graph_mse: (!ms.is_empty()).then(|| ms.iter().map(|m| m.graph_mse).sum::<f64>() / ms.len() as f64),
+        ide: median(pm.iter().filter(movable).flat_map(|m| [m.damping_rel_error, m.friction_rel_error]).flatten().collect()),
+        axis_angle_deg: median(pm.iter().filter(movable).filter_map(|m| m.axis_angle_deg).collect()),
+        axis_offset_m: median(pm.iter().filter_map(|m| m.axis_offset_m).collect()),
+        coverage: ms.iter().fold([0, 0], |a, m| [a[0] + m.coverage.all[0], a[1] + m.coverage.all[1]]),
+    }
+}
+
 /// The aggregate of scored objects.
 pub fn aggregate(rows: &[&ObjectRow]) -> Aggregate {
     let calls: Vec<&PartCall> = rows.iter().flat_map(|r| r.calls.iter()).collect();
@@ -389,25 +414,20 @@ pub fn aggregate(rows: &[&ObjectRow]) -> Aggregate {
             TypeAccuracy { joint: t.name().into(), parts: of.len(), accuracy: frac(of.iter().filter(|c| c.joint_correct).count(), of.len()) }
         })
         .collect();
-    let movable = |m: &&&super::PartMetrics| JointType::parse(&m.true_joint).is_some_and(|t| t.movable());
-    let pm: Vec<&super::PartMetrics> = rows.iter().flat_map(|r| r.metrics.per_part.iter()).collect();
-    let ide = median(pm.iter().filter(movable).flat_map(|m| [m.damping_rel_error, m.friction_rel_error]).flatten().collect());
-    let axis_angle_deg = median(pm.iter().filter(movable).filter_map(|m| m.axis_angle_deg).collect());
-    let axis_offset_m = median(pm.iter().filter_map(|m| m.axis_offset_m).collect());
-    let coverage = rows.iter().fold([0, 0], |a, r| [a[0] + r.metrics.coverage.all[0], a[1] + r.metrics.coverage.all[1]]);
+    let p = pooled(&rows.iter().map(|r| &r.metrics).collect::<Vec<_>>());
     let times: Vec<f64> = rows.iter().map(|r| r.runtime_s).collect();
     Aggregate {
         objects: rows.len(),
         parts,
-        joint_accuracy: frac(calls.iter().filter(|c| c.joint_correct).count(), parts),
+        joint_accuracy: p.joint_accuracy,
         per_type,
         parent_accuracy: frac(calls.iter().filter(|c| c.parent_correct).count(), parts),
-        graph_mse: (!rows.is_empty()).then(|| rows.iter().map(|r| r.metrics.graph_mse).sum::<f64>() / rows.len() as f64),
-        ide,
-        axis_angle_deg,
-        axis_offset_m,
-        coverage,
-        coverage_fraction: frac(coverage[0], coverage[1]),
+        graph_mse: p.graph_mse,
+        ide: p.ide,
+        axis_angle_deg: p.axis_angle_deg,
+        axis_offset_m: p.axis_offset_m,
+        coverage: p.coverage,
+        coverage_fraction: frac(p.coverage[0], p.coverage[1]),
         calibration: calibration(&calls),
         runtime_s_median: median(times.clone()),
         runtime_s_max: times.iter().cloned().reduce(f64::max),
@@ -418,18 +438,15 @@ pub fn aggregate(rows: &[&ObjectRow]) -> Aggregate {
 /// ran), BOM-NUTS, and with baselines Diff. sim., Diff. sim. tail init (IdE and runtime),
 /// Disconnected and Clique (graph MSE).
 pub fn table1(rows: &[&ObjectRow]) -> Vec<Table1Row> {
-    let frac = |k: usize, n: usize| (n > 0).then(|| k as f64 / n as f64);
     let scored = |method: &str, ms: &[&Metrics], times: Vec<f64>| {
-        let pm: Vec<&super::PartMetrics> = ms.iter().flat_map(|m| m.per_part.iter()).collect();
-        let movable = |m: &&&super::PartMetrics| JointType::parse(&m.true_joint).is_some_and(|t| t.movable());
-        let cov = ms.iter().fold([0, 0], |a, m| [a[0] + m.coverage.all[0], a[1] + m.coverage.all[1]]);
+        let p = pooled(ms);
         Table1Row {
             method: method.into(),
-            joint_accuracy: frac(pm.iter().filter(|m| m.joint_correct).count(), pm.len()),
-            graph_mse: (!ms.is_empty()).then(|| ms.iter().map(|m| m.graph_mse).sum::<f64>() / ms.len() as f64),
-            ide: median(pm.iter().filter(movable).flat_map(|m| [m.damping_rel_error, m.friction_rel_error]).flatten().collect()),
-            axis_angle_deg: median(pm.iter().filter(movable).filter_map(|m| m.axis_angle_deg).collect()),
-            coverage_fraction: frac(cov[0], cov[1]),
+            joint_accuracy: p.joint_accuracy,
+            graph_mse: p.graph_mse,
+            ide: p.ide,
+            axis_angle_deg: p.axis_angle_deg,
+            coverage_fraction: (p.coverage[1] > 0).then(|| p.coverage[0] as f64 / p.coverage[1] as f64),
             runtime_s_median: median(times),
         }
     };

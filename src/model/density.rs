@@ -486,50 +486,26 @@ impl<'a> Density<'a> {
         if !total.is_finite() {
             return (total, grad);
         }
-        // Which parts' physics a part's values enter: its own (kinematic parameters), its
-        // ancestors' (its mass, centre of mass and inertia ride in their subtree) and its
-        // descendants' (its displacement moves their joints).
         let movable: Vec<usize> = (0..n).filter(|&i| self.slots[i].kd.is_some()).collect();
         let mut xp = x.to_vec();
-        for j in 0..n {
-            let desc = tree::descendants(parent, j);
-            let affected: Vec<usize> = movable.iter().copied().filter(|&i| i == j || desc.contains(&i) || tree::descendants(parent, i).contains(&j)).collect();
-            if affected.is_empty() {
-                continue;
-            }
+        for (j, idx, parts) in physics_differences(parent, &self.slots, &movable) {
             let s = self.slots[j];
-            let mut dims = physics_dims(&s);
-            // Own kinodynamics are exact already; only an ancestor's physics sees them (mass).
-            if let Some((k, d)) = s.kd {
-                if affected.iter().any(|&i| i != j) {
-                    dims.extend(k..k + d);
-                }
-            }
-            for idx in dims {
-                let own_kd = s.kd.is_some_and(|(k, d)| idx >= k && idx < k + d);
-                xp[idx] = x[idx] + FD_STEP;
-                let params: Vec<JointParams<f64>> = (0..n).map(|m| if m == j { self.params(&xp, m) } else { *values[m].params }).collect();
-                let pv: Vec<PartValue<'_>> = (0..n)
-                    .map(|m| {
-                        let mut v = values[m];
-                        v.params = &params[m];
-                        if m == j {
-                            v.kd = s.kd.map(|(k, d)| &xp[k..k + d]);
-                        }
-                        v
-                    })
-                    .collect();
-                let tr = part_transforms(parent, &pv, frames);
-                let mut d = 0.0;
-                for &i in &affected {
-                    if own_kd && i == j {
-                        continue;
+            xp[idx] = x[idx] + FD_STEP;
+            let params: Vec<JointParams<f64>> = (0..n).map(|m| if m == j { self.params(&xp, m) } else { *values[m].params }).collect();
+            let pv: Vec<PartValue<'_>> = (0..n)
+                .map(|m| {
+                    let mut v = values[m];
+                    v.params = &params[m];
+                    if m == j {
+                        v.kd = s.kd.map(|(k, d)| &xp[k..k + d]);
                     }
-                    d += self.part_physics(i, &pv, &tr).0 - per_part[i];
-                }
-                grad[idx] += d / FD_STEP;
-                xp[idx] = x[idx];
-            }
+                    v
+                })
+                .collect();
+            let tr = part_transforms(parent, &pv, frames);
+            let d: f64 = parts.iter().map(|&i| self.part_physics(i, &pv, &tr).0 - per_part[i]).sum();
+            grad[idx] += d / FD_STEP;
+            xp[idx] = x[idx];
         }
         (total, grad)
     }
@@ -551,6 +527,33 @@ impl<'a> Density<'a> {
 /// [`crate::model::rigid`]), which enter only the likelihood.
 fn physics_dims(s: &PartSlots) -> Vec<usize> {
     (s.xi..s.xi + s.np).filter(|&k| k != s.xi + 3 && k != s.xi + 4).collect()
+}
+
+/// The forward differences of the physics: each perturbed latent `idx` of a part `j`, as
+/// `(j, idx, parts)` with the parts among `candidates` whose physics it enters — `j`'s own
+/// (kinematic parameters), its ancestors' (its mass, centre of mass and inertia ride in their
+/// subtree) and its descendants' (its displacement moves their joints). A part's own
+/// kinodynamics are exact already (dual numbers), so only the others' physics is differenced
+/// for them (its mass).
+fn physics_differences(parent: &[usize], slots: &[PartSlots], candidates: &[usize]) -> Vec<(usize, usize, Vec<usize>)> {
+    let mut out = Vec::new();
+    for (j, s) in slots.iter().enumerate() {
+        let desc = tree::descendants(parent, j);
+        let affected: Vec<usize> = candidates.iter().copied().filter(|&i| i == j || desc.contains(&i) || tree::descendants(parent, i).contains(&j)).collect();
+        if affected.is_empty() {
+            continue;
+        }
+        for idx in physics_dims(s) {
+            out.push((j, idx, affected.clone()));
+        }
+        if let Some((k, d)) = s.kd {
+            let others: Vec<usize> = affected.iter().copied().filter(|&i| i != j).collect();
+            if !others.is_empty() {
+                out.extend((k..k + d).map(|idx| (j, idx, others.clone())));
+            }
+        }
+    }
+    out
 }
 
 /// The displacement of part `i`'s parent at every grid frame (identity under the fixed frame).
@@ -757,36 +760,20 @@ impl<'a> NonCentred<'a> {
         let parent = &d.structure.parent;
         let with_frames: Vec<usize> = (0..n).filter(|&i| !self.frames[i].is_empty()).collect();
         let mut yp = y.to_vec();
-        for j in 0..n {
-            let desc = tree::descendants(parent, j);
-            let affected: Vec<usize> = with_frames.iter().copied().filter(|&i| i == j || desc.contains(&i) || tree::descendants(parent, i).contains(&j)).collect();
-            if affected.is_empty() {
-                continue;
-            }
-            let s = d.slots[j];
-            let mut dims = physics_dims(&s);
-            if let Some((k, nk)) = s.kd {
-                if affected.iter().any(|&i| i != j) {
-                    dims.extend(k..k + nk);
+        for (j, idx, parts) in physics_differences(parent, &d.slots, &with_frames) {
+            yp[idx] = y[idx] + FD_STEP;
+            let mut pp = params.clone();
+            pp[j] = d.params(&yp, j);
+            let moved = self.simulate(&yp, &pp, &parts);
+            let mut acc = 0.0;
+            for &i in &parts {
+                let (Some(a), Some(b), Some(o)) = (&sim[i], &moved[i], d.slots[i].q) else { continue };
+                for &(w, kk, t) in &self.frames[i] {
+                    acc += g[o + t] * (b.trajectories[w].psi[kk] - a.trajectories[w].psi[kk]);
                 }
             }
-            for idx in dims {
-                let own_kd = s.kd.is_some_and(|(k, nk)| idx >= k && idx < k + nk);
-                let parts: Vec<usize> = affected.iter().copied().filter(|&i| !(own_kd && i == j)).collect();
-                yp[idx] = y[idx] + FD_STEP;
-                let mut pp = params.clone();
-                pp[j] = d.params(&yp, j);
-                let moved = self.simulate(&yp, &pp, &parts);
-                let mut acc = 0.0;
-                for &i in &parts {
-                    let (Some(a), Some(b), Some(o)) = (&sim[i], &moved[i], d.slots[i].q) else { continue };
-                    for &(w, kk, t) in &self.frames[i] {
-                        acc += g[o + t] * (b.trajectories[w].psi[kk] - a.trajectories[w].psi[kk]);
-                    }
-                }
-                grad[idx] += acc / FD_STEP;
-                yp[idx] = y[idx];
-            }
+            grad[idx] += acc / FD_STEP;
+            yp[idx] = y[idx];
         }
         lp
     }
