@@ -1,6 +1,6 @@
 //! Benchmarks (`cargo bench`): the physics forward simulation and its gradient, the kinematic
-//! posterior of a real track, the dynamic posterior of a 3-part cabinet after one window, and
-//! whole replays. Speed is measured here and by
+//! posterior of a real track, the dynamic posterior of a 3-part cabinet after one window,
+//! whole replays, and the posterior predictive of `bom predict`. Speed is measured here and by
 //! `bom replay --timing`, never in tests.
 
 use std::hint::black_box;
@@ -152,6 +152,30 @@ fn nuts(c: &mut Criterion) {
     g.finish();
 }
 
+/// The posterior predictive (`bom predict`): a 3 s horizon of the nested `slide_microwave` (4
+/// parts, the door revolute on the sliding microwave) from the start of its first push, at the
+/// posterior medians and with a 100-draw band.
+fn prediction(c: &mut Criterion) {
+    use bom::prediction::{predict, PredictConfig, PredictiveModel, Scene};
+    let cfg = Config::new();
+    let bag = PathBuf::from("bags/mujoco/slide_microwave.mcap");
+    let run = bom::pipeline::replay(std::slice::from_ref(&bag), &cfg).expect("bundled bag");
+    let model = PredictiveModel::from_posterior(run.posterior.as_ref().expect("a posterior"), &run.findings);
+    let mut diag = bom::diagnostics::Diagnostics::default();
+    let obs = bom::pipeline::observe(&[bag], &cfg, &mut diag).expect("bundled bag");
+    let scene = Scene { tracks: &obs.tracks, geometry: &obs.geometry, wrenches: &obs.recording.wrenches, windows: &obs.windows };
+    let from = obs.windows[0].start;
+    let stamps: Vec<f64> = scene.stamps().into_iter().filter(|&t| t >= from && t <= from + 3.0).collect();
+    let mut g = c.benchmark_group("predict");
+    for draws in [0, 100] {
+        let pcfg = PredictConfig { draws, ..PredictConfig::default() };
+        g.bench_function(format!("3 s window, slide_microwave (4 parts), {draws} draws"), |b| {
+            b.iter(|| predict(&model, &scene, from, black_box(&stamps), &pcfg, &cfg.model).expect("predicts"))
+        });
+    }
+    g.finish();
+}
+
 /// `n` points on the surface of the box `lo`..`hi`, resampled per `frame` (a depth camera never
 /// sees the same surface points twice), with ±1 mm of deterministic noise.
 fn box_surface(lo: [f64; 3], hi: [f64; 3], n: usize, frame: usize) -> Vec<[f64; 3]> {
@@ -225,5 +249,5 @@ fn perception(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, physics, inference, nuts, perception);
+criterion_group!(benches, physics, inference, nuts, perception, prediction);
 criterion_main!(benches);

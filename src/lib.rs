@@ -8,7 +8,8 @@
 //! [`input`] (bags, topics) -> [`perception`] (clouds to part centres and poses) -> [`windows`]
 //! -> [`model`] (priors, tree sampler, physics, effects, likelihood, the log density) ->
 //! [`inference`] (SVI, NUTS) ->
-//! [`criticism`] (held-out residuals, missing effects) -> [`output`] (summary table, JSON, ROS
+//! [`criticism`] (held-out residuals, missing effects) -> [`prediction`] (posterior predictive
+//! part motion under a wrench) -> [`output`] (summary table, JSON, ROS
 //! messages, bags, plots). [`pipeline`] wires the stages for
 //! `bom replay`; [`import`] makes bags from articulation track logs.
 //!
@@ -34,4 +35,5 @@ pub mod node;
 pub mod output;
 pub mod perception;
 pub mod pipeline;
+pub mod prediction;
 pub mod windows;

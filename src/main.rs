@@ -93,6 +93,36 @@ enum Command {
         #[arg(trailing_var_arg = true, allow_hyphen_values = true, value_name = "--ros-args ...")]
         ros_args: Vec<String>,
     },
+    /// Posterior predictive part poses (median and 90% band) under a bag's wrench, from its state
+    /// at --from (contract section 4).
+    Predict {
+        /// A replay's JSON summary (`bom replay ... --json`): the posterior to predict with.
+        #[arg(long)]
+        model: PathBuf,
+        /// A bag of the same object with the wrench (`/applied_wrench`) and clouds that give the
+        /// parts' state.
+        #[arg(long)]
+        wrench: PathBuf,
+        /// Predict from this header stamp [s] (default: the start of the bag's first interaction
+        /// window).
+        #[arg(long)]
+        from: Option<f64>,
+        /// Predict up to this stamp [s] (default: the bag's last cloud).
+        #[arg(long)]
+        to: Option<f64>,
+        /// Write the prediction (JSON) here.
+        #[arg(long)]
+        json: Option<PathBuf>,
+        /// Settings (YAML or ROS 2 parameters file): topics, perception and the physics' step.
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Posterior draws for the 90% band (0: the medians only).
+        #[arg(long, default_value_t = 100)]
+        draws: usize,
+        /// Seed of the draws.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+    },
     /// Convert articulation_models track logs into a bag.
     ImportTracks {
         #[arg(required = true)]
@@ -185,6 +215,76 @@ fn eval_corpus(
     if report.scored == 0 {
         eprintln!("error: {}: no object could be scored", corpus.display());
         return ExitCode::from(EXIT_INPUT);
+    }
+    ExitCode::SUCCESS
+}
+
+/// `bom predict`: bad arguments exit 2; an unreadable model or bag, a bag without a wrench, or a
+/// model of another object exit 3.
+#[allow(clippy::too_many_arguments)]
+fn predict(model: &PathBuf, wrench: &PathBuf, from: Option<f64>, to: Option<f64>, json: Option<&PathBuf>, config: Option<&PathBuf>, draws: usize, seed: u64) -> ExitCode {
+    use bom::prediction::{self, PredictConfig, PredictiveModel, Scene};
+    let cfg = match load_config(config) {
+        Ok(c) => c,
+        Err(code) => return code,
+    };
+    if from.is_some_and(|x| !x.is_finite()) || to.is_some_and(|x| !x.is_finite()) {
+        eprintln!("error: --from and --to must be finite stamps in seconds");
+        return ExitCode::from(EXIT_ARGS);
+    }
+    let text = match std::fs::read_to_string(model) {
+        Ok(t) => t,
+        Err(e) => {
+            eprintln!("error: {}: {e}", model.display());
+            return ExitCode::from(EXIT_INPUT);
+        }
+    };
+    let parsed = serde_json::from_str::<serde_json::Value>(&text).map_err(|e| e.to_string()).and_then(|v| PredictiveModel::from_summary_json(&v).map_err(|e| e.to_string()));
+    let pm = match parsed {
+        Ok(m) => m,
+        Err(e) => {
+            eprintln!("error: {}: {e}", model.display());
+            return ExitCode::from(EXIT_INPUT);
+        }
+    };
+    let mut diag = bom::diagnostics::Diagnostics::default();
+    let obs = match pipeline::observe(std::slice::from_ref(wrench), &cfg, &mut diag) {
+        Ok(o) => o,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return ExitCode::from(EXIT_INPUT);
+        }
+    };
+    if obs.recording.wrenches.is_empty() {
+        eprintln!("error: {}: no geometry_msgs/msg/WrenchStamped on '{}': nothing to predict under", wrench.display(), cfg.topics.wrench);
+        return ExitCode::from(EXIT_INPUT);
+    }
+    let scene = Scene { tracks: &obs.tracks, geometry: &obs.geometry, wrenches: &obs.recording.wrenches, windows: &obs.windows };
+    let all = scene.stamps();
+    let (first, last) = (all.first().copied().unwrap_or(0.0), all.last().copied().unwrap_or(0.0));
+    let from = from.unwrap_or_else(|| obs.windows.first().map_or(first, |w| w.start.max(first)));
+    let to = to.unwrap_or(last);
+    if from < first || from > last || to < from {
+        eprintln!("error: --from {from:.3} / --to {to:.3}: outside {}'s clouds ({first:.3} to {last:.3} s)", wrench.display());
+        return ExitCode::from(EXIT_ARGS);
+    }
+    let stamps: Vec<f64> = all.into_iter().filter(|&t| t >= from && t <= to).collect();
+    let pcfg = PredictConfig { draws, seed, ..PredictConfig::default() };
+    let pred = match prediction::predict(&pm, &scene, from, &stamps, &pcfg, &cfg.model) {
+        Ok(p) => p,
+        Err(e) => {
+            eprintln!("error: {} with {}: {e}", model.display(), wrench.display());
+            return ExitCode::from(EXIT_INPUT);
+        }
+    };
+    let out = output::json::prediction_json(&model.display().to_string(), &wrench.display().to_string(), &pred, &scene);
+    print!("{}", output::table::render_prediction(&out));
+    if let Some(path) = json {
+        let text = serde_json::to_string_pretty(&out).expect("prediction serialises");
+        if let Err(e) = std::fs::write(path, text + "\n") {
+            eprintln!("error: {}: {e}", path.display());
+            return ExitCode::from(EXIT_ARGS);
+        }
     }
     ExitCode::SUCCESS
 }
@@ -347,6 +447,7 @@ fn main() -> ExitCode {
             ExitCode::SUCCESS
         }
         Command::Node { params_file, ros_args } => run_node(params_file, &ros_args),
+        Command::Predict { model, wrench, from, to, json, config, draws, seed } => predict(&model, &wrench, from, to, json.as_ref(), config.as_ref(), draws, seed),
         Command::ImportTracks { files, out, joint, rate, grid } => {
             if !(rate.is_finite() && rate > 0.0) {
                 eprintln!("error: --rate must be a positive number of Hz, got {rate}");

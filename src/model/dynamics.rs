@@ -295,6 +295,13 @@ fn window_random_walk(win: &WindowEvidence, q: &[f64], observed: Option<&Observe
 /// step (the first entry is `q0`), or `None` when nothing moves it (not pushed, no spring, no
 /// gravity). `kp` are the decoded parameters (of any scalar type).
 pub fn simulate_window<T: Real>(jw: &JointInWindow<'_>, win: &WindowEvidence, q0: T, kp: &KinoParams<T>, cfg: &DynamicsConfig) -> Option<Vec<T>> {
+    simulate_joint(jw, win, q0, T::from(0.0), kp, cfg)
+}
+
+/// [`simulate_window`] from a moving start: the joint at `q0` \[m of path\] with velocity `v0`
+/// \[m of path / s\] at the window's first step (the posterior predictive of
+/// [`crate::prediction`] starts mid-push; the model's windows start at rest).
+pub fn simulate_joint<T: Real>(jw: &JointInWindow<'_>, win: &WindowEvidence, q0: T, v0: T, kp: &KinoParams<T>, cfg: &DynamicsConfig) -> Option<Vec<T>> {
     let p = jw.joint;
     // Joint coordinate of the physics: the angle for a revolute joint (path / radius), metres for
     // a prismatic one.
@@ -303,7 +310,7 @@ pub fn simulate_window<T: Real>(jw: &JointInWindow<'_>, win: &WindowEvidence, q0
         _ => (JointKind::Prismatic, 1.0),
     };
     let last = win.frame_substep[win.frames.len() - 1];
-    let simulated = jw.pushed || kp.stiffness.re() > 0.0 || jw.effects.gravity;
+    let simulated = jw.pushed || kp.stiffness.re() > 0.0 || jw.effects.gravity || v0.re() != 0.0;
     if !simulated {
         return None;
     }
@@ -337,7 +344,7 @@ pub fn simulate_window<T: Real>(jw: &JointInWindow<'_>, win: &WindowEvidence, q0
         }
     }
     let mut traj = vec![q0];
-    traj.extend(jd.simulate(q0 / scale, T::from(0.0), &tau, win.h, cfg.friction_law).into_iter().map(|x| x * scale));
+    traj.extend(jd.simulate(q0 / scale, v0 / scale, &tau, win.h, cfg.friction_law).into_iter().map(|x| x * scale));
     Some(traj)
 }
 

@@ -288,7 +288,18 @@ fn window_evidence(times: &[f64], frames: Vec<usize>, rest: Vec<usize>, pushed: 
     let t0 = times[first];
     let frame_substep: Vec<usize> = frames.iter().map(|&f| ((times[f] - t0) / h).round() as usize).collect();
     let n = ((times[last] - t0) / h).round() as usize + 1;
+    let (force, torque, point) = wrench_on_steps(wrenches, t0, n, h);
+    Some(WindowEvidence { frames, rest, frame_substep, pushed, continues: false, h, force, torque, point })
+}
+
+/// The measured wrench on `n` integration steps `t0 + k h` \[s\]: force \[N\], torque \[N·m\] and
+/// point of application \[m\], fixed frame, linearly interpolated between the stamps of
+/// `wrenches` (sorted by stamp), zero outside them (the point then stays at the last sample's).
+pub fn wrench_on_steps(wrenches: &[WrenchSample], t0: f64, n: usize, h: f64) -> (Vec<Vector3<f64>>, Vec<Vector3<f64>>, Vec<Vector3<f64>>) {
     let (mut force, mut torque, mut point) = (Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n));
+    if wrenches.is_empty() {
+        return (vec![Vector3::zeros(); n], vec![Vector3::zeros(); n], vec![Vector3::zeros(); n]);
+    }
     let mut j = 0;
     for s in 0..n {
         let t = t0 + s as f64 * h;
@@ -309,7 +320,7 @@ fn window_evidence(times: &[f64], frames: Vec<usize>, rest: Vec<usize>, pushed: 
         torque.push(tq);
         point.push(p);
     }
-    Some(WindowEvidence { frames, rest, frame_substep, pushed, continues: false, h, force, torque, point })
+    (force, torque, point)
 }
 
 /// The longest time between consecutive stamps of `sorted` within `[a, b]`, the ends included \[s\].

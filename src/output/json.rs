@@ -54,6 +54,9 @@ pub struct JointJson {
     pub parent_probs: BTreeMap<String, f64>,
     pub type_probs: BTreeMap<String, f64>,
     pub axis: Option<AxisJson>,
+    /// The part's centre of mass in the reference configuration (its first observation) \[m, fixed
+    /// frame\] (beyond the contract's example: `bom predict` moves nested axes with it).
+    pub com: [f64; 3],
     pub damping: Option<EstimateJson>,
     pub friction: Option<EstimateJson>,
     pub mass: Option<EstimateJson>,
@@ -195,6 +198,11 @@ pub fn model_json(p: &Posterior) -> ModelJson {
                 point: a.point.map(|p| [p.x, p.y, p.z]),
                 point_sd_m: finite(a.point_sd_m),
             }),
+            com: {
+                let ty = j.axis.as_ref().filter(|_| j.map_type.movable()).map_or(j.map_type, |a| a.joint);
+                let c = j.mean_params[ty.index()].com;
+                [c.x, c.y, c.z]
+            },
             // Kinodynamics are unknown in kinematic mode and for rigid joints (contract section 5).
             damping: j.kinodynamics.as_ref().filter(|_| j.map_type.movable()).map(|k| estimate(&k.damping)),
             friction: j.kinodynamics.as_ref().filter(|_| j.map_type.movable()).map(|k| estimate(&k.friction)),
@@ -246,5 +254,69 @@ pub fn summary(run: &Run) -> Summary {
             })
             .unwrap_or_default(),
         diagnostics: run.diagnostics.counts().clone(),
+    }
+}
+
+/// One part in the JSON of `bom predict` (contract section 4): per predicted stamp, the centre of
+/// mass at the posterior medians, the draws' per-coordinate 90% interval and 90% ball radius
+/// \[m, fixed frame\], the observed centre where the part was seen (else null); and how the
+/// prediction compares with those observations.
+#[derive(Debug, Serialize)]
+pub struct PredictedPartJson {
+    pub label: u32,
+    pub com: Vec<[f64; 3]>,
+    pub lower: Vec<[f64; 3]>,
+    pub upper: Vec<[f64; 3]>,
+    pub band_radius_m: Vec<f64>,
+    /// Rotation from the part's reference configuration at the medians, `[x, y, z, w]`.
+    pub orientation: Vec<[f64; 4]>,
+    pub observed: Vec<Option<[f64; 3]>>,
+    pub observed_frames: usize,
+    pub mse_m2: Option<f64>,
+    pub coverage_90: Option<f64>,
+    pub final_error_m: Option<f64>,
+}
+
+/// The JSON of `bom predict`: the posterior predictive of every part from `from_s` on.
+#[derive(Debug, Serialize)]
+pub struct PredictionJson {
+    pub bom_version: String,
+    pub model: String,
+    pub wrench: String,
+    pub from_s: f64,
+    pub draws: usize,
+    pub stamps: Vec<f64>,
+    pub parts: Vec<PredictedPartJson>,
+}
+
+/// Build the JSON of a prediction, with the observations of `scene` at its stamps.
+pub fn prediction_json(model: &str, wrench: &str, pred: &crate::prediction::Prediction, scene: &crate::prediction::Scene<'_>) -> PredictionJson {
+    let v = |x: &nalgebra::Vector3<f64>| [x.x, x.y, x.z];
+    let scores = crate::prediction::score(pred, scene);
+    PredictionJson {
+        bom_version: env!("CARGO_PKG_VERSION").into(),
+        model: model.into(),
+        wrench: wrench.into(),
+        from_s: pred.from,
+        draws: pred.draws,
+        stamps: pred.stamps.clone(),
+        parts: pred
+            .parts
+            .iter()
+            .zip(&scores)
+            .map(|(p, s)| PredictedPartJson {
+                label: p.label,
+                com: p.com.iter().map(v).collect(),
+                lower: p.lower.iter().map(v).collect(),
+                upper: p.upper.iter().map(v).collect(),
+                band_radius_m: p.band_radius_m.clone(),
+                orientation: p.rotation.iter().map(|q| [q.i, q.j, q.k, q.w]).collect(),
+                observed: pred.stamps.iter().map(|&t| scene.observed_com(p.label, t).map(|(y, _)| v(&y))).collect(),
+                observed_frames: s.frames,
+                mse_m2: finite(s.mse_m2),
+                coverage_90: finite(s.coverage_90),
+                final_error_m: finite(s.final_error_m),
+            })
+            .collect(),
     }
 }

@@ -110,29 +110,45 @@ fn progress(msg: &str) -> ProgressBar {
     pb
 }
 
-/// Run the pipeline on bags (several bags = several interactions with one object).
+/// What the stages before the model make of bags: decoded messages, part tracks at cloud rate,
+/// part geometry and interaction windows (input -> perception -> windows).
+#[derive(Debug)]
+pub struct Observed {
+    pub recording: Recording,
+    pub tracks: PartTracks,
+    /// Geometry of every part's model at the end of the recording.
+    pub geometry: BTreeMap<u32, PartGeometry>,
+    pub windows: Vec<Window>,
+    pub ground_truth: Option<GroundTruth>,
+    /// `kinematic` (no wrench) or `dynamic`.
+    pub mode: &'static str,
+}
+
+/// Input, perception and windows on bags (what [`replay`] does before inference, and what
+/// `bom predict` needs of its wrench bag); bad input is counted in `diag`.
 ///
 /// # Errors
 /// [`ReplayError`] when a bag cannot be read at all or holds no usable cloud.
-pub fn replay(bags: &[PathBuf], cfg: &Config) -> Result<Run, ReplayError> {
+pub fn observe(bags: &[PathBuf], cfg: &Config, diag: &mut Diagnostics) -> Result<Observed, ReplayError> {
+    let pb = ProgressBar::hidden();
+    observe_with(bags, cfg, diag, &mut Timing::default(), &pb)
+}
+
+fn observe_with(bags: &[PathBuf], cfg: &Config, diag: &mut Diagnostics, timing: &mut Timing, pb: &ProgressBar) -> Result<Observed, ReplayError> {
     let t0 = Instant::now();
-    let mut timing = Timing::default();
-    let mut diag = Diagnostics::default();
-    let pb = progress("reading bags");
     let mut read = Vec::new();
     for path in bags {
-        read.push(input::read_bag_with(path, &cfg.input, &mut diag)?);
+        read.push(input::read_bag_with(path, &cfg.input, diag)?);
     }
     let ground_truth = read.iter().find_map(|b| b.ground_truth.clone());
     timing.read = t0.elapsed();
 
     pb.set_message("decoding messages");
     let t = Instant::now();
-    let recording = input::decode_recording_with(&read, &cfg.topics, &cfg.fixed_frame, &cfg.input, &mut diag);
+    let recording = input::decode_recording_with(&read, &cfg.topics, &cfg.fixed_frame, &cfg.input, diag);
     drop(read);
     timing.decode = t.elapsed();
     if recording.clouds.is_empty() {
-        pb.finish_and_clear();
         return Err(ReplayError::NoClouds {
             bags: bags.iter().map(|b| b.display().to_string()).collect::<Vec<_>>().join(", "),
             topic: cfg.topics.points.clone(),
@@ -149,8 +165,21 @@ pub fn replay(bags: &[PathBuf], cfg: &Config) -> Result<Run, ReplayError> {
     pb.set_message("windows");
     let t = Instant::now();
     let mode = if recording.wrenches.is_empty() { "kinematic" } else { "dynamic" };
-    let windows = find_windows(&recording, &tracks, cfg, &mut diag);
+    let windows = find_windows(&recording, &tracks, cfg, diag);
     timing.windows = t.elapsed();
+    Ok(Observed { recording, tracks, geometry, windows, ground_truth, mode })
+}
+
+/// Run the pipeline on bags (several bags = several interactions with one object).
+///
+/// # Errors
+/// [`ReplayError`] when a bag cannot be read at all or holds no usable cloud.
+pub fn replay(bags: &[PathBuf], cfg: &Config) -> Result<Run, ReplayError> {
+    let t0 = Instant::now();
+    let mut timing = Timing::default();
+    let mut diag = Diagnostics::default();
+    let pb = progress("reading bags");
+    let Observed { recording, tracks, geometry, windows, ground_truth, mode } = observe_with(bags, cfg, &mut diag, &mut timing, &pb).inspect_err(|_| pb.finish_and_clear())?;
 
     let declared = ground_truth.as_ref().map(declared_effects).unwrap_or_default();
     let mut effects = Effects { declared: declared.clone(), adopted: BTreeMap::new() };
