@@ -6,6 +6,8 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use crate::criticism::CriticismConfig;
+use crate::eval::tracking::TrackingConfig;
+use crate::prediction::PredictConfig;
 use crate::inference::nuts::NutsConfig;
 use crate::inference::svi::SviConfig;
 use crate::input::{InputLimits, Topics};
@@ -29,6 +31,10 @@ pub struct Config {
     /// BOM-NUTS after the last SVI posterior (`--inference nuts`; off by default).
     pub nuts: NutsConfig,
     pub criticism: CriticismConfig,
+    /// The posterior predictive (`bom predict`, the node's predicted part poses, `--tracking`).
+    pub prediction: PredictConfig,
+    /// `bom eval --tracking`: the Kalman baselines' process noise.
+    pub tracking: TrackingConfig,
 }
 
 impl Config {

@@ -68,6 +68,10 @@ enum Command {
         /// simulation with the true structure and axes, from the priors' medians and 1% tails.
         #[arg(long)]
         baselines: bool,
+        /// Add `tracking`: leave each interaction out, fit on the others, predict it open loop
+        /// (from its first 0.1 s) and one cloud ahead, against Kalman filters.
+        #[arg(long, conflicts_with = "corpus")]
+        tracking: bool,
         /// A corpus: a manifest (bags/generate/corpus.py), a folder holding manifest.json, or a
         /// folder of objects, each a folder of bags.
         #[arg(long)]
@@ -116,12 +120,13 @@ enum Command {
         /// Settings (YAML or ROS 2 parameters file): topics, perception and the physics' step.
         #[arg(long)]
         config: Option<PathBuf>,
-        /// Posterior draws for the 90% band (0: the medians only).
-        #[arg(long, default_value_t = 100)]
-        draws: usize,
-        /// Seed of the draws.
-        #[arg(long, default_value_t = 0)]
-        seed: u64,
+        /// Posterior draws for the 90% band (0: the medians only; default: the configuration's
+        /// `prediction.draws`, 100).
+        #[arg(long)]
+        draws: Option<usize>,
+        /// Seed of the draws (default: `prediction.seed`).
+        #[arg(long)]
+        seed: Option<u64>,
     },
     /// Convert articulation_models track logs into a bag.
     ImportTracks {
@@ -222,8 +227,8 @@ fn eval_corpus(
 /// `bom predict`: bad arguments exit 2; an unreadable model or bag, a bag without a wrench, or a
 /// model of another object exit 3.
 #[allow(clippy::too_many_arguments)]
-fn predict(model: &PathBuf, wrench: &PathBuf, from: Option<f64>, to: Option<f64>, json: Option<&PathBuf>, config: Option<&PathBuf>, draws: usize, seed: u64) -> ExitCode {
-    use bom::prediction::{self, PredictConfig, PredictiveModel, Scene};
+fn predict(model: &PathBuf, wrench: &PathBuf, from: Option<f64>, to: Option<f64>, json: Option<&PathBuf>, config: Option<&PathBuf>, draws: Option<usize>, seed: Option<u64>) -> ExitCode {
+    use bom::prediction::{self, PredictiveModel, Scene};
     let cfg = match load_config(config) {
         Ok(c) => c,
         Err(code) => return code,
@@ -260,6 +265,15 @@ fn predict(model: &PathBuf, wrench: &PathBuf, from: Option<f64>, to: Option<f64>
         return ExitCode::from(EXIT_INPUT);
     }
     let scene = Scene { tracks: &obs.tracks, geometry: &obs.geometry, wrenches: &obs.recording.wrenches, windows: &obs.windows };
+    // The contract: a model of another object (labels that do not match) exits 3.
+    let (labels, seen): (Vec<u32>, Vec<u32>) = (pm.labels(), obs.tracks.keys().copied().collect());
+    if labels.len() != seen.len() || labels.iter().any(|l| !seen.contains(l)) {
+        eprintln!("error: {} with {}: {}", model.display(), wrench.display(), prediction::PredictError::Labels { model: labels, recording: seen });
+        return ExitCode::from(EXIT_INPUT);
+    }
+    if pm.joints.iter().any(|j| j.axis.is_some() && j.damping.is_none()) {
+        eprintln!("warning: {}: a kinematic-mode posterior (no damping, friction or mass): its joints keep their velocity at --from instead of following the wrench", model.display());
+    }
     let all = scene.stamps();
     let (first, last) = (all.first().copied().unwrap_or(0.0), all.last().copied().unwrap_or(0.0));
     let from = from.unwrap_or_else(|| obs.windows.first().map_or(first, |w| w.start.max(first)));
@@ -269,7 +283,7 @@ fn predict(model: &PathBuf, wrench: &PathBuf, from: Option<f64>, to: Option<f64>
         return ExitCode::from(EXIT_ARGS);
     }
     let stamps: Vec<f64> = all.into_iter().filter(|&t| t >= from && t <= to).collect();
-    let pcfg = PredictConfig { draws, seed, ..PredictConfig::default() };
+    let pcfg = bom::prediction::PredictConfig { draws: draws.unwrap_or(cfg.prediction.draws), seed: seed.unwrap_or(cfg.prediction.seed), ..cfg.prediction };
     let pred = match prediction::predict(&pm, &scene, from, &stamps, &pcfg, &cfg.model) {
         Ok(p) => p,
         Err(e) => {
@@ -379,7 +393,7 @@ fn main() -> ExitCode {
         .init();
     let cli = Cli::parse();
     match cli.command {
-        Command::Eval { bags, config, inference, json, baselines, corpus, split, layout, jobs } => {
+        Command::Eval { bags, config, inference, json, baselines, tracking, corpus, split, layout, jobs } => {
             if let Some(corpus) = corpus {
                 return eval_corpus(&corpus, &split, layout, jobs, config.as_ref(), json.as_ref(), inference, baselines);
             }
@@ -399,8 +413,14 @@ fn main() -> ExitCode {
             };
             let mut metrics = eval::evaluate(gt, post, baselines);
             eval::add_diff_sim(&mut metrics, &run, gt, &cfg);
+            if tracking {
+                metrics.tracking = Some(eval::tracking::evaluate(&run, &cfg));
+            }
             print!("{}", output::table::render(&run));
             print!("{}", eval::render(&metrics));
+            if let Some(t) = &metrics.tracking {
+                print!("{}", eval::render_tracking(t));
+            }
             if let Some(path) = json {
                 let text = serde_json::to_string_pretty(&metrics).expect("metrics serialise");
                 if let Err(e) = std::fs::write(&path, text + "\n") {

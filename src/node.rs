@@ -30,7 +30,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use futures::StreamExt;
-use nalgebra::{Isometry3, UnitQuaternion, Vector3};
+use nalgebra::Isometry3;
 use ros2_client::dds::rustdds;
 use ros2_client::qos::{Durability, History, QosProfile};
 use ros2_client::{Context, MessageTypeName, Name, Node, NodeName, NodeOptions, Publisher};
@@ -43,6 +43,7 @@ use crate::msgs::{MarkerArray, ModelCriticism, ObjectModel, PointCloud2, PoseArr
 use crate::output::messages;
 use crate::perception::PartObservation;
 use crate::pipeline::online::{Job, Online};
+use crate::prediction::{PredictConfig, PredictiveModel, Scene};
 
 /// Output topics (contract section 2); remappable like the inputs.
 #[derive(Debug, Clone)]
@@ -155,33 +156,37 @@ fn qos(reliable: bool, transient_local: bool, depth: usize) -> QosProfile {
         .history(History::KeepLast { depth })
 }
 
-/// The posterior the node predicts part poses from, with per-part tracking state.
+/// The posterior the node predicts part poses from (contract section 2,
+/// `/bom/predicted_part_poses`): for each cloud, the poses predicted for its stamp plus the
+/// look-ahead from the posterior, the state observed up to the cloud before it and the wrench
+/// measured since ([`crate::prediction`]) — never the cloud's own observation.
 struct Predictor {
-    posterior: Posterior,
-    labels: Vec<u32>,
-    /// Centre of mass of each part in its reference frame \[m\] (perception geometry).
-    com: Vec<Vector3<f64>>,
-    coords: Vec<f64>,
+    model: PredictiveModel,
+    /// Part geometry of the job the posterior was fitted on (the reference centres of mass).
+    geometry: std::collections::BTreeMap<u32, crate::perception::PartGeometry>,
+    /// Stamp of the previous cloud \[s\]: the state predictions start from.
+    prev: Option<f64>,
 }
 
 impl Predictor {
-    fn new(posterior: Posterior, job: &Job) -> Self {
-        let labels: Vec<u32> = posterior.joints.iter().map(|j| j.child).collect();
-        let com = labels.iter().map(|l| job.geometry.get(l).map(|g| g.com).unwrap_or_default()).collect();
-        let coords = vec![0.0; labels.len()];
-        Predictor { posterior, labels, com, coords }
+    fn new(posterior: &Posterior, findings: &[crate::criticism::Finding], job: &Job, prev: Option<f64>) -> Self {
+        Predictor { model: PredictiveModel::from_posterior(posterior, findings), geometry: job.geometry.clone(), prev }
     }
 
-    fn predict(&mut self, obs: &[(u32, PartObservation)]) -> Vec<Isometry3<f64>> {
-        let observed: Vec<Option<Vector3<f64>>> = self
-            .labels
-            .iter()
-            .zip(&self.com)
-            .map(|(l, c)| obs.iter().find(|(x, _)| x == l).map(|(_, o)| (o.pose * nalgebra::Point3::from(*c)).coords))
-            .collect();
-        // A part's frame is aligned with the fixed frame in its reference configuration.
-        let reference = vec![UnitQuaternion::identity(); self.labels.len()];
-        self.posterior.predict_poses(&observed, &mut self.coords, &reference)
+    /// Poses for the cloud at `stamp`, one per part in the posterior's order, or `None` when
+    /// there is no state to predict from (the first cloud, a part not seen yet).
+    fn predict(&mut self, stamp: f64, on: &Online, cfg: &Config) -> Option<Vec<Isometry3<f64>>> {
+        let prev = self.prev.replace(stamp)?;
+        let pushes = on.pushes();
+        let scene = Scene { tracks: on.tracks(), geometry: &self.geometry, wrenches: on.wrenches(), windows: &pushes };
+        let pcfg = PredictConfig { draws: 0, ..cfg.prediction };
+        match crate::prediction::predict(&self.model, &scene, prev, &[stamp + cfg.prediction.look_ahead_s], &pcfg, &cfg.model) {
+            Ok(p) => Some(p.poses(0)),
+            Err(e) => {
+                tracing::debug!("no predicted part poses at {stamp:.3} s: {e}");
+                None
+            }
+        }
     }
 }
 
@@ -491,6 +496,8 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
     let mut on = Online::new(&cfg);
     let mut report = NodeReport::default();
     let mut predictor: Option<Predictor> = None;
+    // Model criticism's latest findings (their adopted effects join the predictions).
+    let mut findings: Vec<crate::criticism::Finding> = Vec::new();
     let mut first_stamp: Option<f64> = None;
     let mut points = Box::pin(sub_points.async_stream());
     let mut wrench = Box::pin(sub_wrench.async_stream());
@@ -500,16 +507,18 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
         .map_err(|e| NodeError::Middleware(format!("SIGTERM handler: {e}")))?;
 
     let handle_frames = |frames: Vec<(f64, Vec<(u32, PartObservation)>)>,
+                         on: &Online,
                          predictor: &mut Option<Predictor>,
                          first_stamp: &mut Option<f64>,
                          report: &mut NodeReport| {
-        for (stamp, obs) in frames {
+        for (stamp, _) in frames {
             first_stamp.get_or_insert(stamp);
             report.stream_s = stamp - first_stamp.unwrap_or(stamp);
             if let Some(p) = predictor.as_mut() {
-                match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| p.predict(&obs))) {
-                    Ok(poses) => {
-                        let msg = messages::pose_array(&poses, Time::from_seconds(stamp), &cfg.fixed_frame);
+                match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| p.predict(stamp, on, &cfg))) {
+                    Ok(None) => {}
+                    Ok(Some(poses)) => {
+                        let msg = messages::pose_array(&poses, Time::from_seconds(stamp + cfg.prediction.look_ahead_s), &cfg.fixed_frame);
                         if let Err(e) = pubs.poses.publish(msg) {
                             tracing::warn!("publishing predicted part poses failed: {e:?}");
                         }
@@ -532,7 +541,7 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
                         let t0 = cpu_time();
                         let frames = guarded(&mut on, &points_topic, |on| on.cloud(&points_topic, &cloud));
                         report.perception_s.push(cpu_time() - t0);
-                        handle_frames(frames, &mut predictor, &mut first_stamp, &mut report);
+                        handle_frames(frames, &on, &mut predictor, &mut first_stamp, &mut report);
                     }
                     Err(e) => on.diag.warn(&points_topic, "undecodable message", &format!("{e:?}; message skipped")),
                 }
@@ -545,7 +554,7 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
                     Ok((w, _)) => {
                         report.wrenches += 1;
                         let frames = guarded(&mut on, &wrench_topic, |on| on.wrench(&wrench_topic, &w));
-                        handle_frames(frames, &mut predictor, &mut first_stamp, &mut report);
+                        handle_frames(frames, &on, &mut predictor, &mut first_stamp, &mut report);
                     }
                     Err(e) => on.diag.warn(&wrench_topic, "undecodable message", &format!("{e:?}; message skipped")),
                 }
@@ -556,14 +565,14 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
             Some(m) = tf.next() => match m {
                 Ok((msg, _)) => {
                     let frames = guarded(&mut on, &tf_topic, |on| on.tf(&tf_topic, &msg, false));
-                    handle_frames(frames, &mut predictor, &mut first_stamp, &mut report)
+                    handle_frames(frames, &on, &mut predictor, &mut first_stamp, &mut report)
                 }
                 Err(e) => on.diag.warn(&tf_topic, "undecodable message", &format!("{e:?}; message skipped")),
             },
             Some(m) = tf_static.next() => match m {
                 Ok((msg, _)) => {
                     let frames = guarded(&mut on, &tf_static_topic, |on| on.tf(&tf_static_topic, &msg, true));
-                    handle_frames(frames, &mut predictor, &mut first_stamp, &mut report)
+                    handle_frames(frames, &on, &mut predictor, &mut first_stamp, &mut report)
                 }
                 Err(e) => on.diag.warn(&tf_static_topic, "undecodable message", &format!("{e:?}; message skipped")),
             },
@@ -576,7 +585,10 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
                         "{what} after {} window(s) published {:.2} s after the window closed (ELBO {:.1})",
                         u.job.windows.len(), u.closed_at.elapsed().as_secs_f64(), posterior.elbo
                     );
-                    predictor = Some(Predictor::new(posterior, &u.job));
+                    if let Some(c) = &u.criticism {
+                        findings = c.findings.clone();
+                    }
+                    predictor = Some(Predictor::new(&posterior, &findings, &u.job, predictor.as_ref().and_then(|p| p.prev)));
                 }
             }
             _ = tokio::signal::ctrl_c() => { tracing::info!("SIGINT: finishing"); break; }

@@ -12,6 +12,9 @@
 //! medians. Each part's centre of mass is reported as the medians' trajectory and the draws' 90%
 //! band ([`Prediction`]).
 //!
+//! A kinematic-mode posterior (no damping, friction or mass) has no forces to simulate: its joints
+//! keep their velocity at `S` along their paths (constant velocity in joint space).
+//!
 //! What the draws do not carry (stated so that a band is read for what it is): the tree is the
 //! MAP one (parent probabilities are not sampled); a drawn movable type whose axis the summary
 //! does not report (the less probable movable type) is simulated as rigid; effects stay at their
@@ -126,8 +129,6 @@ pub enum PredictError {
     Summary(String),
     #[error("the model's parts {model:?} are not the recording's {recording:?} (labels must match: a model of another object?)")]
     Labels { model: Vec<u32>, recording: Vec<u32> },
-    #[error("part {0}: the model has no kinodynamics (a kinematic-mode posterior cannot be simulated under a wrench)")]
-    NoKinodynamics(u32),
     #[error("part {0} is never observed at or before {1:.3} s: no state to predict from")]
     NoState(u32, f64),
 }
@@ -343,20 +344,26 @@ pub fn score(pred: &Prediction, scene: &Scene<'_>) -> Vec<PartScore> {
         .collect()
 }
 
-/// Settings of the posterior predictive.
-#[derive(Debug, Clone, Copy, PartialEq)]
+/// Settings of the posterior predictive (`prediction:` in the configuration).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct PredictConfig {
     /// Posterior draws for the band (0: the medians only).
     pub draws: usize,
     /// Seed of the draws.
     pub seed: u64,
-    /// Observations before `S` that set each joint's velocity \[s\].
+    /// Observations before `S` that set each joint's velocity \[s\] (the paper's tracking
+    /// starts from the first 0.1 s of an interaction).
     pub state_window_s: f64,
+    /// The node's `/bom/predicted_part_poses` (and a replay's output bag): each cloud's message
+    /// holds the poses predicted for its stamp plus this \[s\], from the state up to the cloud
+    /// before it (0: the cloud's own stamp).
+    pub look_ahead_s: f64,
 }
 
 impl Default for PredictConfig {
     fn default() -> Self {
-        PredictConfig { draws: 100, seed: 0, state_window_s: 0.1 }
+        PredictConfig { draws: 100, seed: 0, state_window_s: 0.1, look_ahead_s: 0.0 }
     }
 }
 
@@ -415,18 +422,22 @@ struct DrawnJoint {
     damping: f64,
     friction: f64,
     mass: f64,
+    /// No kinodynamics (a kinematic-mode posterior): the joint moves at its velocity at `S`.
+    kinematic: bool,
 }
 
 /// The posterior predictive of `model` in `scene` from `from` \[s\] at `stamps` (each `>= from`;
 /// earlier ones are dropped), with `cfg.draws` posterior draws for the band.
 ///
+/// Parts of the scene that the model does not have are ignored (a part seen after the posterior
+/// was fitted).
+///
 /// # Errors
-/// [`PredictError`] when the labels do not match, a movable joint has no kinodynamics, or a part
-/// was never seen by `from`.
+/// [`PredictError`] when a part of the model is not in the scene or was never seen by `from`.
 pub fn predict(model: &PredictiveModel, scene: &Scene<'_>, from: f64, stamps: &[f64], cfg: &PredictConfig, mcfg: &ModelConfig) -> Result<Prediction, PredictError> {
     let labels = model.labels();
     let seen: Vec<u32> = scene.tracks.keys().copied().collect();
-    if labels.iter().any(|l| !seen.contains(l)) || seen.iter().any(|l| !labels.contains(l)) {
+    if labels.iter().any(|l| !seen.contains(l)) {
         return Err(PredictError::Labels { model: labels, recording: seen });
     }
     let stamps: Vec<f64> = stamps.iter().copied().filter(|&t| t >= from).collect();
@@ -536,12 +547,13 @@ fn draw<R: Rng>(model: &PredictiveModel, mut rng: Option<&mut R>) -> Result<Vec<
         };
         // Only the reported axis's type can move (module docs).
         let Some(axis) = j.axis.as_ref().filter(|a| ty.movable() && a.joint == ty) else {
-            out.push(DrawnJoint { joint: JointType::Rigid, direction: Vector3::z(), point: Vector3::zeros(), damping: 0.0, friction: 0.0, mass: 0.0 });
+            out.push(DrawnJoint { joint: JointType::Rigid, direction: Vector3::z(), point: Vector3::zeros(), damping: 0.0, friction: 0.0, mass: 0.0, kinematic: false });
             continue;
         };
-        let (Some(b), Some(f), Some(m)) = (j.damping, j.friction, j.mass) else {
-            return Err(PredictError::NoKinodynamics(j.child));
-        };
+        // Kinematic mode: no forces to simulate; the joint keeps its observed velocity.
+        let kinematic = j.damping.is_none() || j.friction.is_none() || j.mass.is_none();
+        let unit = LogNormal { median: 0.0, sd_log: 0.0 };
+        let (b, f, m) = (j.damping.unwrap_or(unit), j.friction.unwrap_or(unit), j.mass.unwrap_or(unit));
         let d = axis.direction;
         let e1 = d.cross(&if d.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() }).normalize();
         let e2 = d.cross(&e1);
@@ -562,6 +574,7 @@ fn draw<R: Rng>(model: &PredictiveModel, mut rng: Option<&mut R>) -> Result<Vec<
             damping: b.draw(rng.as_deref_mut()),
             friction: f.draw(rng.as_deref_mut()),
             mass: m.draw(rng.as_deref_mut()),
+            kinematic,
         });
     }
     Ok(out)
@@ -685,7 +698,11 @@ impl<'a> Simulation<'a> {
                 .collect();
             let jw = JointInWindow { joint: p, com: s.com, unit_inertia: s.unit_inertia, subtree, pushed: (0..self.steps).any(mask), effects };
             let v0 = velocity(p, &s.recent);
-            q[i] = dynamics::simulate_joint(&jw, &win, 0.0, v0, &kp, dyncfg).unwrap_or_else(|| vec![0.0; self.steps]);
+            q[i] = if d.kinematic {
+                (0..self.steps).map(|k| v0 * k as f64 * self.h).collect()
+            } else {
+                dynamics::simulate_joint(&jw, &win, 0.0, v0, &kp, dyncfg).unwrap_or_else(|| vec![0.0; self.steps])
+            };
         }
         // Compose the displacements from `S` down the tree at every stamp.
         let mut com = vec![Vec::with_capacity(self.stamps.len()); n];

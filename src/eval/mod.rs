@@ -4,6 +4,7 @@
 
 pub mod baselines;
 pub mod corpus;
+pub mod tracking;
 
 use nalgebra::Vector3;
 use serde::Serialize;
@@ -93,6 +94,9 @@ pub struct Metrics {
     pub per_part: Vec<PartMetrics>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub baselines: Option<Baselines>,
+    /// `--tracking` (contract section 5): leave-one-interaction-out prediction ([`tracking`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub tracking: Option<tracking::Tracking>,
 }
 
 /// The median of `v` (`None` when empty).
@@ -241,6 +245,7 @@ pub fn evaluate(gt: &GroundTruth, post: &Posterior, baselines: bool) -> Metrics 
             diff_sim: None,
             diff_sim_tail_init: None,
         }),
+        tracking: None,
         per_part,
     }
 }
@@ -254,6 +259,31 @@ pub fn add_diff_sim(metrics: &mut Metrics, run: &crate::pipeline::Run, gt: &Grou
         b.diff_sim = Some(baselines::diff_sim(&ev, gt, &cfg.model, baselines::Start::Median));
         b.diff_sim_tail_init = Some(baselines::diff_sim(&ev, gt, &cfg.model, baselines::Start::LowerTail));
     }
+}
+
+/// A readable table of `--tracking`: per held-out window, open-loop and one-step MSE of bom and
+/// the two Kalman filters, and the band's coverage.
+pub fn render_tracking(t: &tracking::Tracking) -> String {
+    use std::fmt::Write;
+    let mut s = String::new();
+    let _ = writeln!(s, "  tracking (leave one interaction out), MSE [m^2]: bom / const. velocity / const. acceleration");
+    let row = |m: &Option<tracking::Mse>| m.map_or("-".to_string(), |m| format!("{:.3e} / {:.3e} / {:.3e}", m.mse_bom_m2, m.mse_const_vel_m2, m.mse_const_acc_m2));
+    for i in &t.interactions {
+        let _ = write!(s, "    window {:>2} ({:>8.2}-{:>8.2} s, part {:>2}): open loop {}  one step {}", i.window, i.start_s, i.end_s, i.pushed_part.map_or("-".into(), |p| p.to_string()), row(&i.open_loop), row(&i.one_step));
+        match (&i.skipped, i.coverage_90) {
+            (Some(why), _) => {
+                let _ = writeln!(s, "  ({why})");
+            }
+            (None, Some(c)) => {
+                let _ = writeln!(s, "  band {c:.2}");
+            }
+            _ => {
+                let _ = writeln!(s);
+            }
+        }
+    }
+    let _ = writeln!(s, "    mean: open loop {}  one step {}  band coverage {}  one step bom best {}/{}", row(&t.open_loop), row(&t.one_step), t.coverage_90.map_or("-".into(), |c| format!("{c:.2}")), t.one_step_bom_best[0], t.one_step_bom_best[1]);
+    s
 }
 
 /// A readable table of the metrics.

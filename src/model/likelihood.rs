@@ -300,7 +300,8 @@ pub fn wrench_on_steps(wrenches: &[WrenchSample], t0: f64, n: usize, h: f64) -> 
     if wrenches.is_empty() {
         return (vec![Vector3::zeros(); n], vec![Vector3::zeros(); n], vec![Vector3::zeros(); n]);
     }
-    let mut j = 0;
+    // The last sample at or before `t0` (a node keeps a long buffer).
+    let mut j = wrenches.partition_point(|w| w.stamp <= t0).saturating_sub(1);
     for s in 0..n {
         let t = t0 + s as f64 * h;
         while j + 1 < wrenches.len() && wrenches[j + 1].stamp <= t {

@@ -11,7 +11,7 @@ pub use bag::BagWriter;
 
 use std::path::Path;
 
-use nalgebra::{UnitQuaternion, Vector3};
+use crate::prediction::{PredictConfig, PredictiveModel, Scene};
 
 use crate::config::Config;
 use crate::msgs::Time;
@@ -21,7 +21,8 @@ use crate::pipeline::Run;
 /// Write the output topics of a replay to an MCAP bag: `/bom/object_model` and `/bom/markers`
 /// after every update (stamped at the end of the window that triggered it),
 /// `/bom/model_criticism` after every update with findings, and
-/// `/bom/predicted_part_poses` for every cloud frame from the posterior current at that time;
+/// `/bom/predicted_part_poses` for every cloud frame after the first, predicted (as the node does)
+/// from the posterior current at that time, the state up to the frame before and the wrench;
 /// frames before the first update, which the live node could not track yet, use the first
 /// posterior so that the whole recording is tracked.
 ///
@@ -49,35 +50,22 @@ pub fn write_replay_bag(run: &Run, path: &Path, cfg: &Config) -> Result<(), Stri
         w.write("/bom/object_model", "bom_msgs/msg/ObjectModel", stamp.nanos(), &model).map_err(err)?;
     }
     if let Some(first) = run.updates.first() {
-        // Frames: every stamp at which some part was seen.
-        let mut stamps: Vec<f64> = run.tracks.values().flatten().map(|o| o.stamp).collect();
-        stamps.sort_by(|a, b| a.total_cmp(b));
-        stamps.dedup();
-        let labels: Vec<u32> = first.posterior.joints.iter().map(|j| j.child).collect();
-        // A part's frame is aligned with the fixed frame in its reference configuration.
-        let reference = vec![UnitQuaternion::identity(); labels.len()];
-        let mut coords = vec![0.0; labels.len()];
-        let mut cursor: std::collections::BTreeMap<u32, usize> = labels.iter().map(|l| (*l, 0)).collect();
-        for t in stamps {
-            let u = run.updates.iter().rev().find(|u| u.stamp <= t).unwrap_or(first);
-            if u.posterior.joints.len() != labels.len() {
+        // Frames: every stamp at which some part was seen; each predicted from the state up to
+        // the frame before it (the node's predictor, `crate::prediction`).
+        let scene = Scene { tracks: &run.tracks, geometry: &run.geometry, wrenches: &run.wrenches, windows: &run.windows };
+        let models: Vec<PredictiveModel> = run.updates.iter().map(|u| PredictiveModel::from_posterior(&u.posterior, &u.criticism.findings)).collect();
+        let pcfg = PredictConfig { draws: 0, ..cfg.prediction };
+        let stamps = scene.stamps();
+        for pair in stamps.windows(2) {
+            let (prev, t) = (pair[0], pair[1]);
+            let k = run.updates.iter().rposition(|u| u.stamp <= t).unwrap_or(0);
+            if run.updates[k].posterior.joints.len() != first.posterior.joints.len() {
                 continue;
             }
-            let observed: Vec<Option<Vector3<f64>>> = labels
-                .iter()
-                .map(|l| {
-                    let obs = run.tracks.get(l)?;
-                    let c = cursor.get_mut(l)?;
-                    while *c < obs.len() && obs[*c].stamp < t {
-                        *c += 1;
-                    }
-                    let com = run.geometry.get(l).map(|g| g.com).unwrap_or_default();
-                    (*c < obs.len() && obs[*c].stamp == t).then(|| (obs[*c].pose * nalgebra::Point3::from(com)).coords)
-                })
-                .collect();
-            let poses = u.posterior.predict_poses(&observed, &mut coords, &reference);
-            let stamp = Time::from_seconds(t);
-            let msg = messages::pose_array(&poses, stamp, frame);
+            let target = t + cfg.prediction.look_ahead_s;
+            let Ok(pred) = crate::prediction::predict(&models[k], &scene, prev, &[target], &pcfg, &cfg.model) else { continue };
+            let stamp = Time::from_seconds(target);
+            let msg = messages::pose_array(&pred.poses(0), stamp, frame);
             w.write("/bom/predicted_part_poses", "geometry_msgs/msg/PoseArray", stamp.nanos(), &msg).map_err(err)?;
         }
     }

@@ -203,6 +203,25 @@ impl Online {
         &self.tracks
     }
 
+    /// The measured wrenches kept (fixed frame, time order).
+    pub fn wrenches(&self) -> &[WrenchSample] {
+        &self.wrenches
+    }
+
+    /// The pushes so far, for prediction: the closed windows, then each rising edge of the force
+    /// since the last of them as a window open until the next edge (the last one until `+inf`),
+    /// with the part nearest its contact.
+    pub fn pushes(&self) -> Vec<Window> {
+        let mut out = self.closed.clone();
+        let after = self.closed.last().map_or(f64::NEG_INFINITY, |w| w.end);
+        let open: Vec<&Contact> = self.contacts.iter().filter(|c| c.stamp > after).collect();
+        for (k, c) in open.iter().enumerate() {
+            let end = open.get(k + 1).map_or(f64::INFINITY, |n| n.stamp);
+            out.push(Window { start: c.stamp, end, pushed_part: c.best.map(|(_, l)| l) });
+        }
+        out
+    }
+
     /// Geometry of every part's model as it is now.
     pub fn geometry(&self) -> BTreeMap<u32, PartGeometry> {
         self.perception.geometry()
