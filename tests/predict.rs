@@ -106,3 +106,28 @@ fn bom_predict_command_and_its_exit_codes() {
     let (code, _, err) = bom(&["predict", "--model", m, "--wrench", DRAWER, "--from", "1e6"]);
     assert_eq!(code, 2, "{err}");
 }
+
+/// `bom eval --tracking` on the drawer: every push held out in turn is predicted open loop far
+/// better than a constant-velocity filter does, its band covers the observed drawer, and the JSON
+/// carries the contract's `tracking` object with one row per window.
+#[test]
+fn eval_tracking_leaves_each_push_out() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("eval.json");
+    let (code, stdout, err) = bom(&["eval", DRAWER, "--tracking", "--json", out.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    assert!(stdout.contains("tracking (leave one interaction out)"), "{stdout}");
+    let m: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    let t = &m["tracking"];
+    let rows = t["interactions"].as_array().unwrap();
+    assert_eq!(rows.len(), 4, "{t}");
+    for key in ["open_loop", "one_step"] {
+        for field in ["mse_bom_m2", "mse_const_vel_m2", "mse_const_acc_m2"] {
+            assert!(t[key][field].as_f64().is_some_and(|x| x.is_finite() && x >= 0.0), "{key}.{field}: {t}");
+        }
+    }
+    let ol = &t["open_loop"];
+    assert!(ol["mse_bom_m2"].as_f64().unwrap() < 0.1 * ol["mse_const_vel_m2"].as_f64().unwrap(), "{ol}");
+    assert!(t["coverage_90"].as_f64().unwrap() >= 0.8, "{t}");
+    assert_eq!(t["kalman_grid"].as_array().unwrap().len(), 14);
+}

@@ -130,7 +130,7 @@ pub fn evaluate(run: &Run, cfg: &Config) -> Tracking {
             grid.push(Vec::new());
             continue;
         }
-        let others: Vec<_> = run.windows.iter().enumerate().filter(|(k, _)| *k != w).map(|(_, x)| x.clone()).collect();
+        let others: Vec<_> = run.windows.iter().enumerate().filter(|(k, _)| *k != w).map(|(_, x)| *x).collect();
         let src = EvidenceSource { tracks: &run.tracks, geometry: &run.geometry, windows: &others, wrenches: &run.wrenches };
         let mut effects = Effects { declared: declared.clone(), adopted: Default::default() };
         let Some((fitted, criticism)) = (!others.is_empty()).then(|| pipeline::update(src, &mut effects, cfg, None)).flatten() else {
