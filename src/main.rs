@@ -237,6 +237,14 @@ fn predict(model: &PathBuf, wrench: &PathBuf, from: Option<f64>, to: Option<f64>
         eprintln!("error: --from and --to must be finite stamps in seconds");
         return ExitCode::from(EXIT_ARGS);
     }
+    // A summary is kilobytes; bound what is read before it is allocated.
+    const MAX_SUMMARY_BYTES: u64 = 64 << 20;
+    if let Ok(m) = std::fs::metadata(model) {
+        if m.len() > MAX_SUMMARY_BYTES {
+            eprintln!("error: {}: {} bytes is not a JSON summary (at most {MAX_SUMMARY_BYTES})", model.display(), m.len());
+            return ExitCode::from(EXIT_INPUT);
+        }
+    }
     let text = match std::fs::read_to_string(model) {
         Ok(t) => t,
         Err(e) => {

@@ -486,8 +486,11 @@ fn part_state(scene: &Scene<'_>, label: u32, from: f64, window: f64) -> Option<P
     let obs = scene.tracks.get(&label)?;
     let g = scene.geometry.get(&label)?;
     let com = |o: &crate::perception::PartObservation| (o.pose * nalgebra::Point3::from(g.com)).coords;
-    let last = obs.iter().rev().find(|o| o.stamp <= from + 1e-9)?;
-    let recent = obs.iter().filter(|o| o.stamp >= from - window - 1e-9 && o.stamp <= from + 1e-9).map(|o| (o.stamp, com(o))).collect();
+    // Tracks are in time order (perception's frames): bisect, a node's tracks are long.
+    let hi = obs.partition_point(|o| o.stamp <= from + 1e-9);
+    let last = obs[..hi].last()?;
+    let lo = obs.partition_point(|o| o.stamp < from - window - 1e-9).min(hi);
+    let recent = obs[lo..hi].iter().map(|o| (o.stamp, com(o))).collect();
     let r = last.pose.rotation.to_rotation_matrix();
     Some(PartState { com: com(last), rotation: last.pose.rotation, unit_inertia: r.matrix() * g.unit_inertia * r.matrix().transpose(), recent })
 }
