@@ -443,11 +443,11 @@ pub fn predict(model: &PredictiveModel, scene: &Scene<'_>, from: f64, stamps: &[
     let stamps: Vec<f64> = stamps.iter().copied().filter(|&t| t >= from).collect();
     let states = labels.iter().map(|&l| part_state(scene, l, from, cfg.state_window_s).ok_or(PredictError::NoState(l, from))).collect::<Result<Vec<_>, _>>()?;
     let order = topological(model);
-    let median = draw(model, None::<&mut rand_chacha::ChaCha8Rng>)?;
+    let median = draw(model, None::<&mut rand_chacha::ChaCha8Rng>);
     let sim = Simulation::new(model, scene, &states, &order, from, &stamps, mcfg);
     let med = sim.run(&median);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(cfg.seed);
-    let draws: Vec<Vec<Vec<Vector3<f64>>>> = (0..cfg.draws).map(|_| draw(model, Some(&mut rng)).map(|d| sim.run(&d).0)).collect::<Result<_, _>>()?;
+    let draws: Vec<Vec<Vec<Vector3<f64>>>> = (0..cfg.draws).map(|_| sim.run(&draw(model, Some(&mut rng))).0).collect();
     let parts = labels
         .iter()
         .enumerate()
@@ -529,7 +529,7 @@ fn topological(model: &PredictiveModel) -> Vec<(usize, Option<usize>)> {
 }
 
 /// One posterior draw of every joint (`rng` `None`: the medians and the MAP types).
-fn draw<R: Rng>(model: &PredictiveModel, mut rng: Option<&mut R>) -> Result<Vec<DrawnJoint>, PredictError> {
+fn draw<R: Rng>(model: &PredictiveModel, mut rng: Option<&mut R>) -> Vec<DrawnJoint> {
     let mut out = Vec::with_capacity(model.joints.len());
     for j in &model.joints {
         let ty = match rng.as_deref_mut() {
@@ -580,7 +580,7 @@ fn draw<R: Rng>(model: &PredictiveModel, mut rng: Option<&mut R>) -> Result<Vec<
             kinematic,
         });
     }
-    Ok(out)
+    out
 }
 
 /// What every draw's simulation shares: the states, the order, the integration steps and the

@@ -41,6 +41,25 @@ fn mismatches(f: impl Fn(&[f64], &mut [f64]) -> f64, x: &[f64], g: &[f64], dims:
     bad
 }
 
+/// The coordinates a gradient test checks: every kinematic and kinodynamic parameter, coordinates
+/// spread over the grid, and with `windows` each window's first and middle coordinate.
+fn checked_dims(density: &Density, ev: &bom::model::likelihood::Evidence, windows: bool) -> Vec<usize> {
+    let mut dims: Vec<usize> = Vec::new();
+    for s in density.slots() {
+        dims.extend(s.xi..s.xi + s.np);
+        if let Some((o, d)) = s.kd {
+            dims.extend(o..o + d);
+        }
+        if let Some(o) = s.q {
+            dims.extend((0..ev.len()).step_by((ev.len() / 8).max(1)).map(|t| o + t));
+            if windows {
+                dims.extend(ev.windows.iter().flat_map(|w| [o + w.frames[0], o + w.frames[w.frames.len() / 2]]));
+            }
+        }
+    }
+    dims
+}
+
 fn map_structure(fitted: &svi::Fitted) -> Structure {
     let joints = &fitted.posterior.joints;
     Structure { parent: joints.iter().map(|j| j.parent_index).collect(), types: joints.iter().map(|j| j.map_type).collect() }
@@ -59,16 +78,7 @@ fn density_gradient_matches_finite_differences() {
     let mut g = vec![0.0; density.dim()];
     let l = density.log_density(&x, &mut g);
     assert!(l.is_finite(), "log density {l}");
-    let mut dims: Vec<usize> = Vec::new();
-    for s in density.slots() {
-        dims.extend(s.xi..s.xi + s.np);
-        if let Some((o, d)) = s.kd {
-            dims.extend(o..o + d);
-        }
-        if let Some(o) = s.q {
-            dims.extend((0..ev.len()).step_by((ev.len() / 8).max(1)).map(|t| o + t));
-        }
-    }
+    let dims = checked_dims(&density, &ev, false);
     assert!(dims.len() > 10);
     let bad = mismatches(|v, gr| density.log_density(v, gr), &x, &g, &dims);
     assert!(bad.is_empty(), "gradient vs central differences (index, gradient, fd): {bad:?}");
@@ -93,17 +103,7 @@ fn non_centred_density_gradient_matches_finite_differences() {
     let mut g = vec![0.0; density.dim()];
     let l = nc.log_density(&y, &mut g);
     assert!(l.is_finite(), "log density {l}");
-    let mut dims: Vec<usize> = Vec::new();
-    for s in density.slots() {
-        dims.extend(s.xi..s.xi + s.np);
-        if let Some((o, d)) = s.kd {
-            dims.extend(o..o + d);
-        }
-        if let Some(o) = s.q {
-            dims.extend((0..ev.len()).step_by((ev.len() / 8).max(1)).map(|t| o + t));
-            dims.extend(ev.windows.iter().flat_map(|w| [o + w.frames[0], o + w.frames[w.frames.len() / 2]]));
-        }
-    }
+    let dims = checked_dims(density, &ev, true);
     let bad = mismatches(|v, gr| nc.log_density(v, gr), &y, &g, &dims);
     assert!(bad.is_empty(), "gradient vs central differences (index, gradient, fd): {bad:?}");
 }
