@@ -682,6 +682,7 @@ impl<'a> Simulation<'a> {
             let win = WindowEvidence {
                 frames: vec![0, 1],
                 rest: Vec::new(),
+                rest_before: Vec::new(),
                 frame_substep: vec![0, self.steps - 1],
                 pushed: None,
                 continues: false,

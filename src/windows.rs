@@ -178,6 +178,7 @@ mod tests {
             pose: nalgebra::Isometry3::translation(x, 0.0, 0.0),
             com: Point3::new(x, 0.0, 0.0),
             pose_cov: nalgebra::Matrix6::identity() * 1e-6,
+            registration_cov: nalgebra::Matrix6::identity() * 1e-6,
             matched: 1.0,
             points: 10,
             outliers: 0,

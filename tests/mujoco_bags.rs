@@ -159,31 +159,41 @@ fn criticism_finds_the_undeclared_effect(name: &str, run: &bom::pipeline::Run) {
     }
 }
 
-/// Rest frames (`inference.rest_after_s`, 0.5 s by default since stop 22): in dynamic mode grid
-/// frames up to that long after each window join the evidence, outside the physics window and
-/// without starting a new one; the physics windows keep exactly the frames and wrench they have
-/// without them, and kinematic mode (no wrench) gets none. With them `adroit_door`'s latch axis
+/// Rest frames (`inference.rest_after_s`, 0.5 s by default since stop 22, and
+/// `inference.rest_before_s`, off by default): in dynamic mode grid frames up to that long
+/// after each window join the evidence, outside the physics window and without starting a new
+/// one, and frames up to that long before it (not already resting after the previous window); the
+/// physics windows keep exactly the frames and wrench they have without them, and kinematic mode
+/// (no wrench) gets none. With them `adroit_door`'s latch axis
 /// comes out within 3.5 degrees of the truth and the bag's median axis angle within 2 (without:
-/// 4.5-4.9 and 2.3-2.5, with windows 0.5 s past the force).
+/// 4.5-4.9 and 2.3-2.5, with windows 0.5 s past the force), rest frames before included.
 #[test]
 fn rest_frames_follow_each_window_outside_the_physics() {
     use bom::model::likelihood::{Evidence, Grid};
     use std::collections::BTreeMap;
     let mut cfg = Config::new();
     cfg.inference.rest_after_s = 0.5;
+    cfg.inference.rest_before_s = 0.5;
     let (path, run) = replay_bag("adroit_door", &cfg);
     let mut diag = Diagnostics::default();
     let bag = input::read_bag(&path, &mut diag).expect("bag");
     let truth = bag.ground_truth.clone().expect("ground truth");
     let rec = input::decode_recording(&[bag], &cfg.topics, &cfg.fixed_frame, &mut diag);
     let grid = bom::pipeline::grid(&cfg);
-    let no_rest = Grid { rest_after_s: 0.0, ..grid };
+    let no_rest = Grid { rest_after_s: 0.0, rest_before_s: 0.0, ..grid };
     let build = |wrenches: &[bom::input::WrenchSample], g: &Grid| Evidence::new(&run.tracks, &run.geometry, &run.windows, wrenches, &BTreeMap::new(), g);
     let (ev, ev0) = (build(&rec.wrenches, &grid), build(&rec.wrenches, &no_rest));
     assert_eq!(ev.windows.len(), run.windows.len());
+    let mut before = 0;
     for (w, (we, we0)) in ev.windows.iter().zip(&ev0.windows).enumerate() {
         assert!(!we.rest.is_empty(), "window {w}: no rest frames");
-        assert!(we0.rest.is_empty());
+        assert!(we0.rest.is_empty() && we0.rest_before.is_empty());
+        before += we.rest_before.len();
+        let start = run.windows[w].start;
+        for &r in &we.rest_before {
+            assert!(ev.times[r] < start && ev.times[r] >= start - grid.rest_before_s - 1e-9, "window {w}: rest frame before at {}", ev.times[r]);
+            assert!(!we.frames.contains(&r) && !ev.windows.iter().any(|x| x.rest.contains(&r)));
+        }
         let end = run.windows[w].end;
         for &r in &we.rest {
             assert!(ev.times[r] > end && ev.times[r] <= end + grid.rest_after_s + 1e-9, "window {w}: rest frame at {}", ev.times[r]);
@@ -193,6 +203,7 @@ fn rest_frames_follow_each_window_outside_the_physics() {
         assert_eq!(stamps(&ev, &we.frames), stamps(&ev0, &we0.frames), "window {w}");
         assert_eq!((&we.force, &we.frame_substep), (&we0.force, &we0.frame_substep));
     }
+    assert!(before > 0, "no rest frames before any window");
     assert_eq!(build(&[], &grid).times, build(&[], &no_rest).times, "kinematic mode");
     let m = bom::eval::evaluate(&truth, run.posterior.as_ref().expect("posterior"), false);
     let latch = m.per_part.iter().find(|p| p.label == 3).and_then(|p| p.axis_angle_deg).expect("latch axis");
@@ -294,14 +305,17 @@ fn the_physics_at_the_true_parameters_follows_every_push() {
 
 /// Criticism revises itself: an effect adopted on the first windows is measured again on all
 /// windows at every later update and retracted when it no longer meets the adoption rule there
-/// (decisive ELBO gain, held-out error cut to `max_error_ratio`). `microwave_spring` (its spring declared) tracked with
-/// boundary points at weight 0.1 gets quadratic damping adopted after its second window, which all
-/// four windows refute (held-out RMSE 4.0 -> 6.8 mm, -60 nats, before retraction existed): the
-/// run must end without it, and with no finding whose error does not fall.
+/// (decisive ELBO gain, held-out error cut to `max_error_ratio`). `microwave_spring` (its spring
+/// declared) tracked with boundary points at weight 0.2 gets quadratic damping adopted on its
+/// first windows, which all four windows refute (held-out RMSE 22.8 mm without it, 21.2 mm with
+/// it, -16 nats): the run must end without it, and with no finding whose error does not fall.
+/// (Until stop 38 the weight was 0.1; with the likelihood on the registration's covariance no
+/// wrong effect is adopted there. A scan of the shipped bags at weights 0.05-0.3 found this and
+/// `drawer_limit_undeclared` at 0.2 as the runs that retract an effect.)
 #[test]
 fn an_effect_the_later_windows_refute_is_retracted() {
     let mut cfg = Config::new();
-    cfg.perception.boundary_weight = 0.1;
+    cfg.perception.boundary_weight = 0.2;
     let (_, run) = replay_bag("microwave_spring", &cfg);
     let adopted: Vec<_> = run.updates.iter().flat_map(|u| u.criticism.adopted()).collect();
     let retracted: Vec<_> = run.updates.iter().flat_map(|u| u.criticism.retracted.clone()).collect();

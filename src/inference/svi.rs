@@ -115,6 +115,10 @@ pub struct SviConfig {
     /// closing 0.7 s after the force ([`crate::windows::WindowConfig::margin_after_s`]) so that a
     /// coasting door has stopped before its rest frames begin (README, "Known limits").
     pub rest_after_s: f64,
+    /// Dynamic mode: grid frames up to this long before a window \[s\] join the evidence as the
+    /// joint at rest where the window starts it
+    /// ([`crate::model::likelihood::Grid::rest_before_s`]); 0 for none.
+    pub rest_before_s: f64,
     /// Initial guide sds: standardised kinematic parameters, coordinates \[m\], standardised
     /// kinodynamic parameters.
     pub init_global_sd: f64,
@@ -147,6 +151,7 @@ impl Default for SviConfig {
             delta: 0.5,
             min_dt_s: 0.5,
             rest_after_s: 0.5,
+            rest_before_s: 0.0,
             min_frames: 20,
             max_frames: 200,
             init_global_sd: 0.05,

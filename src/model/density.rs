@@ -194,6 +194,10 @@ pub fn physics_prior(
             let (a, b) = (ev.windows[w - 1].frames[ev.windows[w - 1].frames.len() - 1], win.frames[0]);
             l += rest_term(s.q, a, b, rest_sd, dyncfg.deviation_log_sd, &mut gq, &mut gx[3]);
         }
+        // Before the window the joint rests where the physics window starts it (rest frames before).
+        for &b in &win.rest_before {
+            l += rest_term(s.q, win.frames[0], b, rest_sd, dyncfg.deviation_log_sd, &mut gq, &mut gx[3]);
+        }
         // After the window the joint rests where the physics window left it (rest frames).
         if let Some(&a) = win.frames.last() {
             for &b in &win.rest {

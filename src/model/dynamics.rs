@@ -473,6 +473,7 @@ mod tests {
         WindowEvidence {
             frames: (0..13).collect(),
             rest: vec![],
+            rest_before: vec![],
             frame_substep: (0..13).map(|k| ((k as f64 * 5.0 / 30.0) / h).round() as usize).collect(),
             pushed: Some(0),
             continues: false,

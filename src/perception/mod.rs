@@ -129,6 +129,10 @@ pub struct PartObservation {
     /// Covariance of `pose` as of a small increment `(w, u)` in the reference configuration
     /// (`y -> y + w x y + u`; rad², m²), floors included.
     pub pose_cov: Matrix6<f64>,
+    /// The registration's share of `pose_cov`, without the floors: what this frame's points
+    /// say (zero for the reference frame). The model's likelihood of positions adds its own
+    /// inferred noise to this instead of the floors ([`crate::model::likelihood::Evidence::new`]).
+    pub registration_cov: Matrix6<f64>,
     /// Fraction of the points matched to the part's model.
     pub matched: f64,
     /// Points used.
@@ -388,29 +392,40 @@ fn observation(
     let mut lever = Matrix6::<f64>::identity();
     lever.fixed_view_mut::<3, 3>(3, 0).copy_from(&registration::skew(&anchor));
     let mut pose_cov = lever * Matrix6::from_diagonal(&nalgebra::Vector6::new(fr, fr, fr, fp, fp, fp)) * lever.transpose();
+    let mut registration_cov = Matrix6::zeros();
     if let Some(a) = information {
         // Regularised inverse: an unconstrained direction gets a large but finite variance.
         let reg = a + Matrix6::identity() * (1e-9 * a.trace().max(1e-12) + 1.0);
-        pose_cov += reg.try_inverse().unwrap_or_else(Matrix6::identity) * cfg.registration_cov_scale;
+        registration_cov = reg.try_inverse().unwrap_or_else(Matrix6::identity) * cfg.registration_cov_scale;
+        pose_cov += registration_cov;
     }
-    PartObservation { stamp, pose, com: pose * Point3::from(anchor), pose_cov, matched, points, outliers }
+    PartObservation { stamp, pose, com: pose * Point3::from(anchor), pose_cov, registration_cov, matched, points, outliers }
 }
 
 impl PartObservation {
     /// Covariance \[m²\] (fixed frame) of the position of the material point `c` (reference
     /// configuration): a small increment `(w, u)` moves it by `R (c x w - u)`.
     pub fn position_cov(&self, c: &Vector3<f64>) -> Matrix3<f64> {
-        let r = self.pose.rotation.to_rotation_matrix().into_inner();
-        let mut j = Matrix3x6::<f64>::zeros();
-        j.fixed_view_mut::<3, 3>(0, 0).copy_from(&registration::skew(c));
-        j.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-Matrix3::identity()));
-        r * (j * self.pose_cov * j.transpose()) * r.transpose()
+        self.position_cov_of(&self.pose_cov, c)
     }
 
     /// Covariance \[rad²\] of the rotation vector of the rotation error, fixed frame.
     pub fn rotation_cov(&self) -> Matrix3<f64> {
         let r = self.pose.rotation.to_rotation_matrix().into_inner();
         r * self.pose_cov.fixed_view::<3, 3>(0, 0).into_owned() * r.transpose()
+    }
+
+    /// [`Self::position_cov`] of the registration alone (no floors).
+    pub fn registration_position_cov(&self, c: &Vector3<f64>) -> Matrix3<f64> {
+        self.position_cov_of(&self.registration_cov, c)
+    }
+
+    fn position_cov_of(&self, cov: &Matrix6<f64>, c: &Vector3<f64>) -> Matrix3<f64> {
+        let r = self.pose.rotation.to_rotation_matrix().into_inner();
+        let mut j = Matrix3x6::<f64>::zeros();
+        j.fixed_view_mut::<3, 3>(0, 0).copy_from(&registration::skew(c));
+        j.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-Matrix3::identity()));
+        r * (j * cov * j.transpose()) * r.transpose()
     }
 }
 

@@ -334,6 +334,7 @@ pub fn grid(cfg: &Config) -> Grid {
         min_frames: cfg.inference.min_frames,
         max_frames: cfg.inference.max_frames,
         rest_after_s: cfg.inference.rest_after_s,
+        rest_before_s: cfg.inference.rest_before_s,
         max_unobserved_s: cfg.windows.max_unobserved_s,
         step_s: cfg.model.dynamics.step_s,
         contact_range_m: cfg.perception.contact_range_m,
