@@ -37,7 +37,6 @@ use ros2_client::{Context, MessageTypeName, Name, Node, NodeName, NodeOptions, P
 use tokio::sync::{mpsc, Notify};
 
 use crate::config::Config;
-use crate::inference::guide::GuideState;
 use crate::inference::Posterior;
 use crate::msgs::{MarkerArray, ModelCriticism, ObjectModel, PointCloud2, PoseArray, TFMessage, Time, WrenchStamped};
 use crate::output::messages;
@@ -413,7 +412,7 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
         let latest = Arc::new(std::sync::atomic::AtomicU64::new(0));
         let nuts_runs = NutsRuns { latest: latest.clone(), busy: nuts_busy.clone(), panics: panics.clone() };
         tokio::spawn(async move {
-            let mut warm: Option<GuideState> = None;
+            let mut warm: Option<crate::inference::svi::WarmStart> = None;
             // Effects model criticism adopted, kept for every later update.
             let mut effects = crate::pipeline::Effects::default();
             loop {
@@ -464,7 +463,7 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
                             start_nuts(&c_nuts, job.clone(), fitted.clone(), fx.clone(), closed_at, seq, &nuts_runs, &done_tx);
                         }
                         effects = fx;
-                        warm = Some(fitted.guide);
+                        warm = Some(fitted.warm);
                         Some(Update { posterior, sampler: None, criticism: Some(criticism), job, closed_at })
                     }
                     Err(e) => {

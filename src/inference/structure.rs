@@ -5,11 +5,13 @@
 //! kinematic models of articulated objects", §4), every part's motion is fitted *relative to every
 //! candidate parent* — the fixed frame or another part, whose motion is then removed — with each
 //! joint type, scored by the model's own likelihood at the fit less a BIC penalty
-//! `0.5 ln(n) (#parameters + #coordinates)`, and the tree is the maximum spanning arborescence
-//! (Chu-Liu/Edmonds) of the best scores plus the contact prior's log weights. A candidate parent's
-//! motion is its best fit relative to the fixed frame, not its raw registration: two parts that
-//! move together (a microwave standing on a slider) then score alike whichever carries the other,
-//! instead of the noisier one always being the child, and the contact prior decides.
+//! `0.5 ln(n) (#parameters + #coordinates)` (or, [`CoordinatePenalty::PerFrame`],
+//! `0.5 ln(n) #parameters + sum_t 0.5 ln(n_t)`, `n_t` a coordinate's own frame's observations),
+//! and the tree is the maximum spanning arborescence (Chu-Liu/Edmonds) of the best scores plus
+//! the contact prior's log weights. A candidate parent's motion is its best fit relative to the
+//! fixed frame, not its raw registration: two parts that move together (a microwave standing on
+//! a slider) then score alike whichever carries the other, instead of the noisier one always
+//! being the child, and the contact prior decides.
 //!
 //! Why: the guide's continuous parameters describe a joint *relative to its parent*. Fitted under
 //! a wrong parent — a latch under the fixed frame while it rides on a door — they follow the
@@ -56,9 +58,9 @@ pub fn observed_displacements(ev: &Evidence, j: usize) -> Vec<Displacement<f64>>
 
 /// The displacement of part `j` at every grid frame under its best-scoring joint type relative to
 /// the fixed frame (its registration, smoothed by the joint's one degree of freedom).
-fn fitted_displacements(ev: &Evidence, j: usize, model: &ModelConfig) -> Vec<Displacement<f64>> {
+fn fitted_displacements(ev: &Evidence, j: usize, model: &ModelConfig, penalty: CoordinatePenalty) -> Vec<Displacement<f64>> {
     let world = vec![Displacement::identity(); ev.len()];
-    let scores = JointType::ALL.map(|k| score(ev, j, k, &world, model));
+    let scores = JointType::ALL.map(|k| score(ev, j, k, &world, model, penalty));
     let best = JointType::ALL
         .into_iter()
         .zip(scores)
@@ -69,8 +71,20 @@ fn fitted_displacements(ev: &Evidence, j: usize, model: &ModelConfig) -> Vec<Dis
     q.iter().map(|&qt| displacement(&p, qt)).collect()
 }
 
+/// How the initial structure charges a movable joint's per-frame coordinates.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CoordinatePenalty {
+    /// BIC's `0.5 ln n` per coordinate, `n` all the part's observations: a strong preference for
+    /// fewer moving joints (a flap riding on a slider scores rigid on it, not prismatic on the
+    /// fixed frame).
+    Bic,
+    /// `0.5 ln n_t` per coordinate, `n_t` its own frame's observations: a joint that moved in one
+    /// window of several is not outweighed by the frames in which it rested.
+    PerFrame,
+}
+
 /// Score of part `i` with joint type `joint` relative to the motion `pre` of a parent.
-fn score(ev: &Evidence, i: usize, joint: JointType, pre: &[Displacement<f64>], model: &ModelConfig) -> f64 {
+fn score(ev: &Evidence, i: usize, joint: JointType, pre: &[Displacement<f64>], model: &ModelConfig, penalty: CoordinatePenalty) -> f64 {
     let (xi, q) = init_block(ev, i, joint, pre, model);
     let ll = block_pass(ev, i, joint, &xi, &q, pre, &[], model).0;
     let part = &ev.parts[i];
@@ -78,8 +92,24 @@ fn score(ev: &Evidence, i: usize, joint: JointType, pre: &[Displacement<f64>], m
         .map(|t| part.obs[t].map_or(0, |_| 3) + part.rot[t].as_ref().map_or(0, |r| r.axes.len()))
         .sum();
     let seen = part.obs.iter().filter(|o| o.is_some()).count();
-    let k = joint.num_params() + if joint.movable() { seen.saturating_sub(1) } else { 0 };
-    ll - 0.5 * (n_obs.max(2) as f64).ln() * k as f64
+    match penalty {
+        CoordinatePenalty::Bic => {
+            let k = joint.num_params() + if joint.movable() { seen.saturating_sub(1) } else { 0 };
+            ll - 0.5 * (n_obs.max(2) as f64).ln() * k as f64
+        }
+        CoordinatePenalty::PerFrame => {
+            let coordinates: f64 = if joint.movable() {
+                (0..ev.len())
+                    .filter(|&t| part.obs[t].is_some())
+                    .skip(1)
+                    .map(|t| 0.5 * ((3 + part.rot[t].as_ref().map_or(0, |r| r.axes.len())) as f64).ln())
+                    .sum()
+            } else {
+                0.0
+            };
+            ll - 0.5 * (n_obs.max(2) as f64).ln() * joint.num_params() as f64 - coordinates
+        }
+    }
 }
 
 /// Whether part `j` clearly moves: in some window, its median displacement from the reference
@@ -121,18 +151,18 @@ fn moves(ev: &Evidence, j: usize) -> bool {
 }
 
 /// The initial structure of the parts of `ev`, with the contact prior's log weights `log_w`
-/// (`n` rows of `n + 1`).
-pub fn initial_structure(ev: &Evidence, model: &ModelConfig, log_w: &[Vec<f64>]) -> InitialStructure {
+/// (`n` rows of `n + 1`), its coordinates charged by `penalty`.
+pub fn initial_structure(ev: &Evidence, model: &ModelConfig, log_w: &[Vec<f64>], penalty: CoordinatePenalty) -> InitialStructure {
     let n = ev.parts.len();
     let world = vec![Displacement::identity(); ev.len()];
     let pres: Vec<Vec<Displacement<f64>>> = (0..=n)
-        .map(|j| if j > 0 && moves(ev, j - 1) { fitted_displacements(ev, j - 1, model) } else { world.clone() })
+        .map(|j| if j > 0 && moves(ev, j - 1) { fitted_displacements(ev, j - 1, model, penalty) } else { world.clone() })
         .collect();
     let mut parent_score = vec![vec![f64::NEG_INFINITY; n + 1]; n];
     let mut all_types = vec![vec![[f64::NEG_INFINITY; 3]; n + 1]; n];
     for i in 0..n {
         for j in (0..=n).filter(|&j| j != i + 1) {
-            let s = JointType::ALL.map(|k| score(ev, i, k, &pres[j], model));
+            let s = JointType::ALL.map(|k| score(ev, i, k, &pres[j], model, penalty));
             all_types[i][j] = s;
             parent_score[i][j] = s.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
         }
@@ -214,7 +244,7 @@ mod tests {
         let model = ModelConfig::default();
         // Rows: part; columns: fixed frame, carrier, load. The load never touches the fixed frame.
         let log_w = vec![vec![0.0, f64::NEG_INFINITY, 0.0], vec![-20.0, 0.0, f64::NEG_INFINITY]];
-        let s = initial_structure(&ev, &model, &log_w);
+        let s = initial_structure(&ev, &model, &log_w, CoordinatePenalty::Bic);
         assert_eq!(s.parent, vec![0, 1], "scores {:?}", s.parent_score);
         let best = |t: &[f64; 3]| (0..3).max_by(|&a, &b| t[a].total_cmp(&t[b])).unwrap();
         assert_eq!(best(&s.type_score[0]), JointType::Prismatic.index());

@@ -187,6 +187,8 @@ pub fn replay(bags: &[PathBuf], cfg: &Config) -> Result<Run, ReplayError> {
     let mut updates = Vec::new();
     let mut findings = Vec::new();
     let mut warm = None;
+    // The last update's guide, for BOM-NUTS.
+    let mut last_guide = None;
     for w in 0..windows.len() {
         pb.set_message(format!("BOM-SVI after window {}/{}", w + 1, windows.len()));
         let src = EvidenceSource { tracks: &tracks, geometry: &geometry, windows: &windows[..=w], wrenches: &recording.wrenches };
@@ -194,7 +196,8 @@ pub fn replay(bags: &[PathBuf], cfg: &Config) -> Result<Run, ReplayError> {
             findings = criticism.findings.clone();
             timing.criticism += Duration::from_secs_f64(criticism.runtime_s);
             updates.push(Update { stamp: windows[w].end, num_windows: w + 1, posterior: fitted.posterior, criticism });
-            warm = Some(fitted.guide);
+            warm = Some(fitted.warm);
+            last_guide = Some(fitted.guide);
         }
     }
     timing.inference = t.elapsed().saturating_sub(timing.criticism);
@@ -210,12 +213,12 @@ pub fn replay(bags: &[PathBuf], cfg: &Config) -> Result<Run, ReplayError> {
         .collect();
     let mut posterior = updates.last().map(|u| u.posterior.clone());
     let mut sampler = None;
-    if let (true, Some(post), Some(guide)) = (cfg.nuts.enabled, posterior.as_ref(), warm) {
+    if let (true, Some(post), Some(guide)) = (cfg.nuts.enabled, posterior.as_ref(), last_guide) {
         // BOM-NUTS on the last update's evidence (all windows, the final effects), from its SVI fit.
         let t = Instant::now();
         let src = EvidenceSource { tracks: &tracks, geometry: &geometry, windows: &windows, wrenches: &recording.wrenches };
         let ev = src.evidence(&effects, cfg);
-        let svi_fit = svi::Fitted { posterior: post.clone(), guide };
+        let svi_fit = svi::Fitted { posterior: post.clone(), warm: svi::WarmStart::from_guide(guide.clone()), guide };
         match nuts::sample(&ev, &cfg.model, &svi_fit, &cfg.nuts) {
             Ok((p, report)) => {
                 for w in &report.warnings {
@@ -278,7 +281,7 @@ pub fn update(
     src: EvidenceSource<'_>,
     effects: &mut Effects,
     cfg: &Config,
-    warm: Option<&crate::inference::guide::GuideState>,
+    warm: Option<&svi::WarmStart>,
 ) -> Option<(svi::Fitted, Criticism)> {
     let (ev, fitted) = fit_update(src, effects, cfg, warm)?;
     let (criticism, refit) = criticise_update(src, &ev, &fitted, effects, cfg);
@@ -291,7 +294,7 @@ pub fn fit_update(
     src: EvidenceSource<'_>,
     effects: &Effects,
     cfg: &Config,
-    warm: Option<&crate::inference::guide::GuideState>,
+    warm: Option<&svi::WarmStart>,
 ) -> Option<(Evidence, svi::Fitted)> {
     let ev = src.evidence(effects, cfg);
     let fitted = svi::fit(&ev, &cfg.model, &cfg.inference, warm)?;
@@ -324,7 +327,7 @@ pub fn criticise_update(
         let set = effects.adopted.entry(label).or_default();
         *set = set.with(kind, limit);
     }
-    (criticism, svi::fit(&src.evidence(effects, cfg), &cfg.model, &cfg.inference, Some(&fitted.guide)))
+    (criticism, svi::fit(&src.evidence(effects, cfg), &cfg.model, &cfg.inference, Some(&fitted.warm)))
 }
 
 /// The evidence grid of the configuration.

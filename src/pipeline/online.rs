@@ -22,7 +22,6 @@ use nalgebra::Point3;
 
 use crate::config::Config;
 use crate::diagnostics::Diagnostics;
-use crate::inference::guide::GuideState;
 use crate::inference::svi;
 use crate::criticism::Criticism;
 use crate::model::likelihood::Evidence;
@@ -540,12 +539,12 @@ impl Job {
     /// Update the posterior with this evidence: BOM-SVI warm-started from the previous update's
     /// guide when given, then model criticism, which may add effects to `effects` and refit
     /// ([`super::update`], as `bom replay`). `None` when no part was seen inside a window.
-    pub fn update(&self, cfg: &Config, warm: Option<&GuideState>, effects: &mut super::Effects) -> Option<(svi::Fitted, Criticism)> {
+    pub fn update(&self, cfg: &Config, warm: Option<&svi::WarmStart>, effects: &mut super::Effects) -> Option<(svi::Fitted, Criticism)> {
         super::update(self.source(), effects, cfg, warm)
     }
 
     /// The first half of [`Job::update`] (the node publishes its result at once): BOM-SVI.
-    pub fn fit(&self, cfg: &Config, warm: Option<&GuideState>, effects: &super::Effects) -> Option<(Evidence, svi::Fitted)> {
+    pub fn fit(&self, cfg: &Config, warm: Option<&svi::WarmStart>, effects: &super::Effects) -> Option<(Evidence, svi::Fitted)> {
         super::fit_update(self.source(), effects, cfg, warm)
     }
 
