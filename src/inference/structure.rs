@@ -37,6 +37,13 @@ pub struct InitialStructure {
     pub type_score: Vec<[f64; 3]>,
 }
 
+impl InitialStructure {
+    /// The best-scoring joint type of each part under its parent (a [`JointType::index`]).
+    pub fn best_types(&self) -> Vec<usize> {
+        self.type_score.iter().map(|s| (0..3).max_by(|&a, &b| s[a].total_cmp(&s[b])).unwrap_or(0)).collect()
+    }
+}
+
 /// The observed displacement of node `j` at every grid frame (identity for the fixed frame; held
 /// over frames in which the part is not seen).
 pub fn observed_displacements(ev: &Evidence, j: usize) -> Vec<Displacement<f64>> {

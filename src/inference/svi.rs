@@ -535,13 +535,10 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Wa
     let log_w = contact_log_weights(ev, model);
     let bic = structure::initial_structure(ev, model, &log_w, structure::CoordinatePenalty::Bic);
     let per_frame = structure::initial_structure(ev, model, &log_w, structure::CoordinatePenalty::PerFrame);
-    let best_types = |s: &structure::InitialStructure| -> Vec<usize> {
-        s.type_score.iter().map(|t| (0..3).max_by(|&a, &b| t[a].total_cmp(&t[b])).unwrap_or(0)).collect()
-    };
     let first = fit_from(ev, model, cfg, warm.map(|w| &w.bic), &log_w, &bic)?;
     let diverged = warm.is_some_and(|w| w.per_frame.is_some());
     let mut fitted = first;
-    if diverged || per_frame.parent != bic.parent || best_types(&per_frame) != best_types(&bic) {
+    if diverged || per_frame.parent != bic.parent || per_frame.best_types() != bic.best_types() {
         let own = warm.map(|w| w.per_frame.as_ref().unwrap_or(&w.bic));
         if let Some(other) = fit_from(ev, model, cfg, own, &log_w, &per_frame) {
             tracing::debug!("two starts: ELBO {:.1} (BIC start) vs {:.1} (per-frame start)", fitted.posterior.elbo, other.posterior.elbo);
@@ -611,7 +608,7 @@ fn fit_from(
     // widens the reported intervals only.
     let mut inflation = vec![[1.0; 3]; n];
     let start_tree = tree::fixed(&start.parent);
-    let start_types: Vec<usize> = start.type_score.iter().map(|s| (0..3).max_by(|&a, &b| s[a].total_cmp(&s[b])).unwrap_or(0)).collect();
+    let start_types = start.best_types();
     if !ev.windows.is_empty() {
         laplace_kinodynamics(ev, &layout, &mut theta, &mut inflation, &mut [], &start.parent, &start_types, model, true, false);
     }

@@ -213,12 +213,12 @@ pub fn replay(bags: &[PathBuf], cfg: &Config) -> Result<Run, ReplayError> {
         .collect();
     let mut posterior = updates.last().map(|u| u.posterior.clone());
     let mut sampler = None;
-    if let (true, Some(post), Some(guide)) = (cfg.nuts.enabled, posterior.as_ref(), last_guide) {
+    if let (true, Some(post), Some(guide), Some(warm)) = (cfg.nuts.enabled, posterior.as_ref(), last_guide, warm) {
         // BOM-NUTS on the last update's evidence (all windows, the final effects), from its SVI fit.
         let t = Instant::now();
         let src = EvidenceSource { tracks: &tracks, geometry: &geometry, windows: &windows, wrenches: &recording.wrenches };
         let ev = src.evidence(&effects, cfg);
-        let svi_fit = svi::Fitted { posterior: post.clone(), warm: svi::WarmStart::from_guide(guide.clone()), guide };
+        let svi_fit = svi::Fitted { posterior: post.clone(), guide, warm };
         match nuts::sample(&ev, &cfg.model, &svi_fit, &cfg.nuts) {
             Ok((p, report)) => {
                 for w in &report.warnings {
