@@ -202,34 +202,35 @@ pub fn criticise(ev: &Evidence, post: &Posterior, adopted: &BTreeMap<u32, Effect
             continue;
         }
         // Every effect the joint lacks; a joint limit below, above or on both sides.
-        let mut tried: Vec<(EffectKind, Candidate)> = Vec::new();
+        let mut variants: Vec<(EffectKind, Option<LimitSpec>)> = Vec::new();
         for kind in EffectKind::ALL {
-            let variants: Vec<Option<LimitSpec>> = match kind {
-                EffectKind::JointLimit if current.limit.is_none() => vec![
-                    Some(LimitSpec { lower: Some(0.0), upper: None }),
-                    Some(LimitSpec { lower: None, upper: Some(0.0) }),
-                    Some(LimitSpec { lower: Some(0.0), upper: Some(0.0) }),
-                ],
-                EffectKind::JointLimit => vec![],
-                k if current.kinds().contains(&k) => vec![],
-                _ => vec![None],
-            };
-            for limit in variants {
-                let effects = anchored(current.with(kind, limit), &series, &|_| true, None);
-                let c = candidate(&series, &ev.times, effects, &start, dyncfg);
-                tracing::debug!(
-                    "part {}: {} {:?}: ELBO {:.1} (base {:.1}), held-out RMSE {:.4} m (base {:.4})",
-                    series.label,
-                    kind.name(),
-                    limit,
-                    c.elbo,
-                    base.elbo,
-                    rmse(&c.held_out),
-                    before
-                );
-                tried.push((kind, c));
+            match kind {
+                EffectKind::JointLimit if current.limit.is_none() => variants.extend([
+                    (kind, Some(LimitSpec { lower: Some(0.0), upper: None })),
+                    (kind, Some(LimitSpec { lower: None, upper: Some(0.0) })),
+                    (kind, Some(LimitSpec { lower: Some(0.0), upper: Some(0.0) })),
+                ]),
+                EffectKind::JointLimit => {}
+                k if current.kinds().contains(&k) => {}
+                _ => variants.push((kind, None)),
             }
         }
+        // The candidates are independent fits: spread them over the cores.
+        let tried: Vec<(EffectKind, Candidate)> = parallel_map(&variants, |&(kind, limit)| {
+            let effects = anchored(current.with(kind, limit), &series, &|_| true, None);
+            let c = candidate(&series, &ev.times, effects, &start, dyncfg);
+            tracing::debug!(
+                "part {}: {} {:?}: ELBO {:.1} (base {:.1}), held-out RMSE {:.4} m (base {:.4})",
+                series.label,
+                kind.name(),
+                limit,
+                c.elbo,
+                base.elbo,
+                rmse(&c.held_out),
+                before
+            );
+            (kind, c)
+        });
         let best = tried.into_iter().max_by(|a, b| a.1.elbo.total_cmp(&b.1.elbo));
         let Some((kind, best)) = best else { continue };
         let gain = best.elbo - base.elbo;
@@ -265,6 +266,21 @@ pub fn criticise(ev: &Evidence, post: &Posterior, adopted: &BTreeMap<u32, Effect
     }
     out.runtime_s = started.elapsed().as_secs_f64();
     out
+}
+
+/// `f` over `items` on up to as many threads as the machine has cores, results in `items`'
+/// order (so the outcome does not depend on the thread count).
+fn parallel_map<T: Sync, R: Send>(items: &[T], f: impl Fn(&T) -> R + Sync) -> Vec<R> {
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get()).min(items.len()).max(1);
+    if threads == 1 {
+        return items.iter().map(&f).collect();
+    }
+    let chunk = items.len().div_ceil(threads);
+    let f = &f;
+    std::thread::scope(|s| {
+        let jobs: Vec<_> = items.chunks(chunk).map(|c| s.spawn(move || c.iter().map(f).collect::<Vec<R>>())).collect();
+        jobs.into_iter().flat_map(|j| j.join().unwrap_or_else(|e| std::panic::resume_unwind(e))).collect()
+    })
 }
 
 /// `effects` with each joint stop anchored at the most extreme coordinate observed on its side in

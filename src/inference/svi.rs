@@ -535,20 +535,30 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Wa
     let log_w = contact_log_weights(ev, model);
     let bic = structure::initial_structure(ev, model, &log_w, structure::CoordinatePenalty::Bic);
     let per_frame = structure::initial_structure(ev, model, &log_w, structure::CoordinatePenalty::PerFrame);
-    let first = fit_from(ev, model, cfg, warm.map(|w| &w.bic), &log_w, &bic)?;
     let diverged = warm.is_some_and(|w| w.per_frame.is_some());
-    let mut fitted = first;
-    if diverged || per_frame.parent != bic.parent || per_frame.best_types() != bic.best_types() {
+    let two = diverged || per_frame.parent != bic.parent || per_frame.best_types() != bic.best_types();
+    // The two starts are independent fits (each its own warm start and seeded RNG): run them on
+    // two threads, so that the second start costs no wall time where a core is free.
+    let (first, second) = if two {
         let own = warm.map(|w| w.per_frame.as_ref().unwrap_or(&w.bic));
-        if let Some(other) = fit_from(ev, model, cfg, own, &log_w, &per_frame) {
-            tracing::debug!("two starts: ELBO {:.1} (BIC start) vs {:.1} (per-frame start)", fitted.posterior.elbo, other.posterior.elbo);
-            let agree = map_structure(&other.posterior) == map_structure(&fitted.posterior);
-            let warm_next = WarmStart { bic: fitted.guide.clone(), per_frame: (!agree).then(|| other.guide.clone()) };
-            if other.posterior.elbo > fitted.posterior.elbo {
-                fitted = Fitted { posterior: other.posterior, guide: other.guide, warm: warm_next };
-            } else {
-                fitted.warm = warm_next;
-            }
+        std::thread::scope(|s| {
+            let other = s.spawn(|| fit_from(ev, model, cfg, own, &log_w, &per_frame));
+            let first = fit_from(ev, model, cfg, warm.map(|w| &w.bic), &log_w, &bic);
+            // A panic in the other start's fit is a bug: let it surface as this thread's.
+            (first, other.join().unwrap_or_else(|e| std::panic::resume_unwind(e)))
+        })
+    } else {
+        (fit_from(ev, model, cfg, warm.map(|w| &w.bic), &log_w, &bic), None)
+    };
+    let mut fitted = first?;
+    if let Some(other) = second {
+        tracing::debug!("two starts: ELBO {:.1} (BIC start) vs {:.1} (per-frame start)", fitted.posterior.elbo, other.posterior.elbo);
+        let agree = map_structure(&other.posterior) == map_structure(&fitted.posterior);
+        let warm_next = WarmStart { bic: fitted.guide.clone(), per_frame: (!agree).then(|| other.guide.clone()) };
+        if other.posterior.elbo > fitted.posterior.elbo {
+            fitted = Fitted { posterior: other.posterior, guide: other.guide, warm: warm_next };
+        } else {
+            fitted.warm = warm_next;
         }
     }
     fitted.posterior.runtime_s = started.elapsed().as_secs_f64();
