@@ -57,6 +57,13 @@ pub struct JointJson {
     /// The part's centre of mass in the reference configuration (its first observation) \[m, fixed
     /// frame\] (beyond the contract's example: `bom predict` moves nested axes with it).
     pub com: [f64; 3],
+    /// Rotational inertia about the centre of mass per kilogram \[m²\], rows of a 3x3 matrix in
+    /// fixed-frame axes, in the reference configuration: perception's hull model of the part
+    /// (beyond the contract's example; `None` where no geometry, e.g. the node's posteriors). With
+    /// `mass`, `com` and the axis it gives the joint's generalised inertia, which the physics uses
+    /// ([`crate::model::physics::generalised_inertia`]) and a planner needs.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub unit_inertia: Option<[[f64; 3]; 3]>,
     pub damping: Option<EstimateJson>,
     pub friction: Option<EstimateJson>,
     pub mass: Option<EstimateJson>,
@@ -203,6 +210,7 @@ pub fn model_json(p: &Posterior) -> ModelJson {
                 let c = j.mean_params[ty.index()].com;
                 [c.x, c.y, c.z]
             },
+            unit_inertia: None,
             // Kinodynamics are unknown in kinematic mode and for rigid joints (contract section 5).
             damping: j.kinodynamics.as_ref().filter(|_| j.map_type.movable()).map(|k| estimate(&k.damping)),
             friction: j.kinodynamics.as_ref().filter(|_| j.map_type.movable()).map(|k| estimate(&k.friction)),
@@ -230,6 +238,12 @@ pub fn summary(run: &Run) -> Summary {
             .collect(),
         model: run.posterior.as_ref().map(|p| {
             let mut m = model_json(p);
+            for j in &mut m.joints {
+                j.unit_inertia = run.geometry.get(&j.child).map(|g| {
+                    let u = &g.unit_inertia;
+                    [0, 1, 2].map(|r| [u[(r, 0)], u[(r, 1)], u[(r, 2)]])
+                });
+            }
             if let Some(s) = &run.sampler {
                 m.inference = "nuts".into();
                 m.sampler = Some(sampler_json(run, s));

@@ -1,0 +1,508 @@
+"""Task success (issue 28 part 4; the paper's Table 1, Success %): open a part of an object with
+bom's posterior, on the true object in MuJoCo.
+
+    python bags/generate/task_success.py --corpus corpus --split validation --bom target/release/bom \\
+        --models models/ --json success.json [--jobs 2] [--draws 64] [--config FILE] [--min-interactions 2]
+
+For every corpus object (of the split, with at least `--min-interactions` interactions) bom's
+model is the JSON summary of `bom replay` on the object's continuous bag (made in `--models` when
+missing). The task: bring the first part the recording pushed to a target from the object's
+initial state (the state every recording starts from): a revolute part 60 degrees past closed, a
+prismatic one 15 cm out, or 60% of its travel past closed when its range is shorter ("closed" is
+the end of the joint's range nearer 0). Success: the part comes to rest within 5 degrees or 1 cm
+of the target, and nothing was hit (no joint within 2% of its range of a stop, no two parts in
+contact), as the recorder checks its recordings.
+
+Three planners, each executed open loop on the true object:
+- `bom`: the posterior's MAP joint type, its axis, the part's centre of mass and unit inertia, and
+  the medians of damping, Coulomb friction and mass plan a push; the posterior's spread (axis
+  sds, the kinodynamic 90% intervals) is sampled into `--draws` models and the plan chosen is the
+  one that lands within tolerance on most draws (ties: the least error of the median model). A
+  part called rigid (P(rigid) highest) gets no plan: a failure.
+- `oracle`: the same planner with the true joint (type, axis, damping, friction) and the true
+  generalised inertia (MuJoCo's joint-space mass matrix), no spread.
+- `model_free`: push along the initial direction of the handle's motion (the handle's surface
+  normal) with a constant 8 N until the part stops (handle speed below 2 mm/s for 0.2 s, at most
+  6 s), then let go.
+
+A plan is a force of magnitude `F` at the handle, ramped up over 0.15 s, held `T` s, ramped down
+over 0.15 s, always along the model's direction of motion of the handle at the angle (or
+position) the model predicts for that instant. The planner's physics is one joint:
+`I qdd = tau - b qd - mu sign(qd)` (implicit viscous damping, Coulomb friction as a clamped
+impulse), `I` the part's (and the parts it carries') generalised inertia about the axis — the same
+terms as bom's model (paper §3.4), integrated at 2 ms.
+
+Output: one line per object and planner, an aggregate table (success per planner, and how many
+objects each scored), and with `--json` per object the task, each planner's plan, predicted
+probability of success, final error and what it hit.
+"""
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+
+import corpus  # noqa: E402
+import record  # noqa: E402
+
+TOL = {"revolute": math.radians(5.0), "prismatic": 0.01}
+GOAL = {"revolute": math.radians(60.0), "prismatic": 0.15}
+RAMP_S = 0.15
+DT = 0.002
+F_MAX = 40.0
+MODEL_FREE_N = 8.0
+SETTLE_MAX_S = 5.0
+
+
+# --------------------------------------------------------------------------------------------
+# The true object and its task
+# --------------------------------------------------------------------------------------------
+
+
+class Scene:
+    """The true object at its initial state: a `record.Recorder` (model, data, part labels)."""
+
+    def __init__(self, seed):
+        so, family, _, interactions = corpus.draw(seed)
+        self.spec, self.family, self.interactions = so, family, interactions
+        self.rec = record.Recorder(so, {}, seed, 150)
+        self.initial = mujoco.MjData(self.rec.model)
+        mujoco.mj_copyData(self.initial, self.rec.model, self.rec.data)
+
+    def reset(self):
+        mujoco.mj_copyData(self.rec.data, self.rec.model, self.initial)
+        mujoco.mj_forward(self.rec.model, self.rec.data)
+
+    def joint(self, jname):
+        m = self.rec.model
+        j = self.rec.joint_id(jname)
+        kind = "revolute" if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE else "prismatic"
+        return j, kind, int(self.rec.body_part[m.jnt_bodyid[j]])
+
+    def q(self, j):
+        m = self.rec.model
+        return float(self.rec.data.qpos[m.jnt_qposadr[j]])
+
+    def task(self):
+        """The first pushed part's task: joint name, kind, label, start q, target q, tolerance, and
+        the unit direction the handle moves in at the start towards the target (world)."""
+        jname = list(self.spec.push_order or self.spec.handles)[0]
+        j, kind, label = self.joint(jname)
+        m, d = self.rec.model, self.rec.data
+        lo, hi = (float(v) for v in m.jnt_range[j])
+        q0 = self.q(j)
+        closed, s = (lo, 1.0) if abs(lo) <= abs(hi) else (hi, -1.0)
+        target = closed + s * min(GOAL[kind], 0.6 * (hi - lo))
+        if s * (target - q0) < 3.0 * TOL[kind]:
+            target = closed + s * 0.6 * (hi - lo)
+        sign = 1.0 if target > q0 else -1.0
+        h = self.rec.handle_point(jname)
+        if kind == "revolute":
+            hint = np.cross(d.xaxis[j], h - d.xanchor[j])
+        else:
+            hint = d.xaxis[j].copy()
+        hint = sign * hint / np.linalg.norm(hint)
+        return {"joint": jname, "kind": kind, "label": label, "q0": q0, "target": target, "tol": TOL[kind],
+                "range": [lo, hi], "handle": h.tolist(), "hint": hint.tolist()}
+
+    def true_model(self, task):
+        """The oracle's joint model at the initial state: true axis, damping, friction and
+        generalised inertia."""
+        self.reset()
+        m, d = self.rec.model, self.rec.data
+        j, kind, _ = self.joint(task["joint"])
+        dof = m.jnt_dofadr[j]
+        mujoco.mj_forward(m, d)
+        unit, column = np.zeros(m.nv), np.zeros(m.nv)
+        unit[dof] = 1.0
+        mujoco.mj_mulM(m, d, column, unit)  # the mass matrix's column of the joint's dof
+        return {"kind": kind, "direction": d.xaxis[j].copy(), "point": d.xanchor[j].copy(),
+                "damping": np.array([m.dof_damping[dof]]), "friction": np.array([m.dof_frictionloss[dof]]),
+                "inertia": np.array([column[dof]])}
+
+    def execute(self, task, force_at):
+        """Apply `force_at(t, handle_velocity) -> world force or None (let go)` at the handle of
+        the true object from its initial state; simulate until everything rests (at most
+        `SETTLE_MAX_S` after letting go). Returns (final q of the task's joint, what was hit)."""
+        self.reset()
+        rec = self.rec
+        m, d = rec.model, rec.data
+        j, _, _ = self.joint(task["joint"])
+        body = m.jnt_bodyid[j]
+        joints = [self.joint(n)[0] for n in self.spec.handles]
+        hit = set()
+        t, released_at, still = 0.0, None, 0.0
+        prev = rec.handle_point(task["joint"])
+        speed = 0.0
+        while True:
+            d.qfrc_applied[:] = 0.0
+            f = force_at(t, speed) if released_at is None else None
+            if f is None and released_at is None:
+                released_at = t
+            if f is not None:
+                mujoco.mj_applyFT(m, d, np.asarray(f, float), np.zeros(3), rec.handle_point(task["joint"]), body, d.qfrc_applied)
+            mujoco.mj_step(m, d)
+            t += m.opt.timestep
+            h = rec.handle_point(task["joint"])
+            speed = float(np.linalg.norm(h - prev)) / m.opt.timestep
+            prev = h
+            for jj in joints:
+                lo, hi = m.jnt_range[jj]
+                qv = d.qpos[m.jnt_qposadr[jj]]
+                if qv < lo + 0.02 * (hi - lo) or qv > hi - 0.02 * (hi - lo):
+                    hit.add(f"stop of {mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, jj)}")
+            for a, b in rec.part_contacts():
+                hit.add(f"contact {rec.part_names[a - 1]}-{rec.part_names[b - 1]}")
+            if released_at is not None:
+                resting = float(np.max(np.abs(d.qvel))) < 1e-3
+                still = still + m.opt.timestep if resting else 0.0
+                if still >= 0.3 or t - released_at > SETTLE_MAX_S:
+                    break
+        return self.q(j), sorted(hit)
+
+
+# --------------------------------------------------------------------------------------------
+# The planner's one-joint physics
+# --------------------------------------------------------------------------------------------
+
+
+def rotate(v, axis, angle):
+    """Rodrigues: `v` turned by `angle` about the unit `axis` (arrays of angles broadcast)."""
+    c, s = np.cos(angle)[..., None], np.sin(angle)[..., None]
+    return v * c + np.cross(axis, v) * s + axis * (v @ axis)[..., None] * (1.0 - c)
+
+
+def geometry(model, task):
+    """Per draw: lever radius of the handle about the axis (1 for prismatic) and the sign that
+    makes the model's positive motion move the handle along the task's hint."""
+    h = np.array(task["handle"])
+    hint = np.array(task["hint"])
+    dirs = model["direction"]
+    if model["kind"] == "revolute":
+        r = h - model["point"]
+        r = r - dirs * np.sum(r * dirs, axis=-1, keepdims=True)
+        radius = np.linalg.norm(r, axis=-1)
+        tangent = np.cross(dirs, r)
+        sign = np.where(np.sum(tangent * hint, axis=-1) >= 0.0, 1.0, -1.0)
+        return np.maximum(radius, 1e-3), sign
+    sign = np.where(np.sum(dirs * hint, axis=-1) >= 0.0, 1.0, -1.0)
+    return np.ones(len(dirs)), sign
+
+
+def profile(t, force, hold):
+    """Trapezoid force magnitude at times `t`."""
+    up = np.clip(t / RAMP_S, 0.0, 1.0)
+    down = np.clip((2 * RAMP_S + hold - t) / RAMP_S, 0.0, 1.0)
+    return force * np.minimum(up, down)
+
+
+def simulate(model, task, force, hold, keep_path=False):
+    """Final joint displacement (rad or m, positive towards the target) under trapezoid pushes
+    (`force` N, `hold` s), every lane at once: the model's per-draw arrays, `force` and `hold`
+    broadcast together. With `keep_path`, the path of the first lane at every step."""
+    radius, _ = geometry(model, task)
+    inertia, b, mu = model["inertia"], model["damping"], model["friction"]
+    shape = np.broadcast(radius, np.asarray(force), np.asarray(hold)).shape
+    q, v, rest = np.zeros(shape), np.zeros(shape), np.zeros(shape)
+    end = 2 * RAMP_S + np.asarray(hold) + np.zeros(shape)
+    last = float(np.max(end))
+    denom = inertia + DT * b
+    t = 0.0
+    path = []
+    while True:
+        tau = radius * profile(t, force, hold)
+        trial = (inertia * v + DT * tau) / denom
+        # Coulomb friction as an impulse that can stop, never reverse, the joint
+        v = np.sign(trial) * np.maximum(0.0, np.abs(trial) - DT * mu / denom)
+        q = q + DT * v
+        if keep_path:
+            path.append(float(q.flat[0]))
+        t += DT
+        rest = np.where((t > end) & (np.abs(v) < 1e-4), rest + DT, 0.0)
+        if t > last and (np.all(rest > 0.05) or t > last + SETTLE_MAX_S):
+            break
+    return q, path
+
+
+def median_of(model):
+    """The median model (draw 0) of a model of per-draw arrays."""
+    return {k: (v[:1] if isinstance(v, np.ndarray) else v) for k, v in model.items()}
+
+
+def plan(model, task, selection="robust"):
+    """The push (force N, hold s) that lands within tolerance on most draws of `model` (per-draw
+    arrays; draw 0 the median model): for each force of a grid from the median model's breakaway
+    force up, the hold that brings the median model to the target, then every draw under it.
+    Returns (force, hold, P(success) over draws, median model's error), or None when no push up
+    to `F_MAX` N and 8 s reaches the target in the median model."""
+    want = abs(task["target"] - task["q0"])
+    tol = task["tol"]
+    median = median_of(model)
+    radius, _ = geometry(median, task)
+    breakaway = float(median["friction"][0] / radius[0])
+    forces = np.unique(np.clip(np.geomspace(max(1.2 * breakaway, 0.5), max(8.0 * breakaway, 30.0), 12), 0.5, F_MAX))
+    holds = np.linspace(0.0, 8.0, 321)
+    finals, _ = simulate(median, task, forces[:, None], holds[None, :])
+    chosen = []
+    for f, row in zip(forces, finals):
+        k = int(np.argmax(row >= want))
+        if row[k] < want:
+            continue
+        if k == 0:
+            hold = 0.0
+        else:
+            a, b = row[k - 1], row[k]
+            hold = float(holds[k - 1] + (holds[k] - holds[k - 1]) * (want - a) / max(b - a, 1e-12))
+        chosen.append((float(f), hold))
+    if not chosen:
+        return None
+    fs = np.array([c[0] for c in chosen])[:, None]
+    hs = np.array([c[1] for c in chosen])[:, None]
+    draws, _ = simulate(model, task, fs, hs)
+    scored = [(f, hold, float(np.mean(np.abs(row - want) <= tol)), abs(float(row[0]) - want)) for (f, hold), row in zip(chosen, draws)]
+    if selection == "gentle":
+        # the least force within 0.1 of the best probability of success
+        top = max(c[2] for c in scored)
+        return min((c for c in scored if c[2] >= top - 0.1), key=lambda c: c[0])
+    return max(scored, key=lambda c: (c[2], -c[3], -c[0]))
+
+
+def force_along_plan(model, task, force, hold):
+    """The open-loop command: at time t the force magnitude of the trapezoid along the median
+    model's direction of motion of the handle at the displacement it predicts for t."""
+    median = median_of(model)
+    _, path = simulate(median, task, force, hold, keep_path=True)
+    path = np.array(path)
+    _, sign = geometry(median, task)
+    d = median["direction"][0]
+    h0 = np.array(task["handle"])
+    end = 2 * RAMP_S + hold
+
+    def at(t, _speed):
+        if t > end:
+            return None
+        q = sign[0] * path[min(int(t / DT), len(path) - 1)]
+        if median["kind"] == "revolute":
+            r = rotate(h0 - median["point"][0], d, np.array(q))
+            r = r - d * (r @ d)
+            direction = sign[0] * np.cross(d, r)
+        else:
+            direction = sign[0] * d
+        return float(profile(np.array(t), force, hold)) * direction / np.linalg.norm(direction)
+
+    return at
+
+
+# --------------------------------------------------------------------------------------------
+# bom's posterior as the planner's models
+# --------------------------------------------------------------------------------------------
+
+
+def log_normal_draws(est, u):
+    """Draws of a positive parameter with median `est.median` and 90% interval [q05, q95]."""
+    med = max(est["median"], 1e-9)
+    q05, q95 = est.get("q05", med), est.get("q95", med)
+    if q05 > 0.0 and q95 > q05:
+        return med * np.exp(u * math.log(q95 / q05) / (2 * 1.6449))
+    return np.maximum(med + u * est.get("sd", 0.0), 0.0)
+
+
+def perpendicular_noise(direction, sd, rng, n):
+    """`n` isotropic Gaussian vectors of sd `sd` perpendicular to the unit `direction`."""
+    e = rng.normal(0.0, sd, (n, 3))
+    return e - np.outer(e @ direction, direction)
+
+
+def bom_model(summary, task, draws, seed):
+    """The planner's model from bom's JSON summary for the task's part: draw 0 at the medians,
+    the rest from the spread. `(model, called)`: model None when bom called the part rigid (or
+    gave no kinodynamics), `called` bom's MAP joint type."""
+    joints = {j["child"]: j for j in summary["model"]["joints"]}
+    j = joints.get(task["label"])
+    if j is None:
+        return None, "missing"
+    called = max(j["type_probs"], key=j["type_probs"].get)
+    if called == "rigid" or j.get("axis") is None or j.get("mass") is None:
+        return None, called
+    rng = np.random.default_rng(seed)
+    n = max(1, draws)
+    u = rng.normal(0.0, 1.0, (3, n))
+    u[:, 0] = 0.0
+    ax = j["axis"]
+    d0 = np.array(ax["direction"], float)
+    d0 /= np.linalg.norm(d0)
+    # the angle's sd split over the two perpendicular components
+    dirs = d0 + perpendicular_noise(d0, math.radians(ax.get("direction_sd_deg") or 0.0) / math.sqrt(2.0), rng, n)
+    dirs[0] = d0
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    damping = log_normal_draws(j["damping"], u[0])
+    friction = log_normal_draws(j["friction"], u[1])
+    mass = log_normal_draws(j["mass"], u[2])
+    com = np.array(j["com"], float)
+    unit = np.array(j.get("unit_inertia") or np.zeros((3, 3)), float)
+    # Parts the part carries (bom's MAP tree), as their masses at their centres plus their own
+    # rotational inertia.
+    carried = []
+    frontier = [task["label"]]
+    while frontier:
+        p = frontier.pop()
+        for c in joints.values():
+            if c["parent"] == p and c["child"] != task["label"]:
+                frontier.append(c["child"])
+                if c.get("mass") is not None:
+                    carried.append((c["mass"]["median"], np.array(c["com"], float), np.array(c.get("unit_inertia") or np.zeros((3, 3)), float)))
+    model = {"kind": called, "direction": dirs, "damping": damping, "friction": friction}
+    if called == "revolute":
+        pt0 = np.array(ax["point"], float)
+        sd = ax.get("point_sd_m") or 0.0
+        points = pt0 + np.concatenate([np.zeros((1, 3)), perpendicular_noise(d0, sd, rng, n - 1)])
+        model["point"] = points
+
+        def about_axis(m, c, u_):
+            r = c - points
+            r = r - dirs * np.sum(r * dirs, axis=1, keepdims=True)
+            return m * (np.sum(r * r, axis=1) + np.einsum("ni,ij,nj->n", dirs, u_, dirs))
+
+        inertia = about_axis(mass, com, unit)
+        for m_c, c_c, u_c in carried:
+            inertia = inertia + about_axis(m_c, c_c, u_c)
+    else:
+        model["point"] = np.zeros((n, 3))
+        inertia = mass + sum(m_c for m_c, _, _ in carried)
+    model["inertia"] = np.maximum(inertia, 1e-6)
+    return model, called
+
+
+def true_as_arrays(true):
+    return {"kind": true["kind"], "direction": true["direction"][None, :], "point": true["point"][None, :],
+            "damping": true["damping"], "friction": true["friction"], "inertia": true["inertia"]}
+
+
+# --------------------------------------------------------------------------------------------
+# One object
+# --------------------------------------------------------------------------------------------
+
+
+def run_planner(scene, task, model, selection="robust"):
+    chosen = plan(model, task, selection)
+    if chosen is None:
+        return {"success": False, "reason": "no push within the force and time limits reaches the target in the model"}
+    force, hold, p, err = chosen
+    final, hit = scene.execute(task, force_along_plan(model, task, force, hold))
+    error = abs(final - task["target"])
+    return {"success": bool(error <= task["tol"] and not hit), "force_n": force, "hold_s": hold,
+            "p_success_model": p, "model_error": err, "final_q": final, "error": error, "hit": hit}
+
+
+def run_model_free(scene, task):
+    hint = np.array(task["hint"])
+    state = {"moving_since": None, "slow": 0.0}
+
+    def at(t, speed):
+        if t > 6.0:
+            return None
+        if t > 0.3:
+            state["slow"] = state["slow"] + scene.rec.model.opt.timestep if speed < 0.002 else 0.0
+            if state["slow"] >= 0.2:
+                return None
+        return MODEL_FREE_N * min(1.0, t / RAMP_S) * hint
+
+    final, hit = scene.execute(task, at)
+    error = abs(final - task["target"])
+    return {"success": bool(error <= task["tol"] and not hit), "final_q": final, "error": error, "hit": hit}
+
+
+def evaluate(entry, model_json, draws, selection="robust"):
+    """All three planners on one corpus object (a manifest entry) with bom's summary."""
+    scene = Scene(entry["seed_used"])
+    task = scene.task()
+    row = {"name": entry["name"], "family": entry["family"], "split": entry.get("split"), "task": task}
+    summary = json.loads(Path(model_json).read_text())
+    model, called = bom_model(summary, task, draws, entry["seed_used"])
+    row["bom_called"] = called
+    row["true_joint"] = task["kind"]
+    row["bom"] = run_planner(scene, task, model, selection) if model is not None else {"success": False, "reason": f"bom called the part {called}"}
+    row["oracle"] = run_planner(scene, task, true_as_arrays(scene.true_model(task)))
+    row["model_free"] = run_model_free(scene, task)
+    return row
+
+
+def fit(bom, bag, out, config):
+    cmd = [bom, "replay", str(bag), "--json", str(out), "--out", os.devnull]
+    if config:
+        cmd += ["--config", config]
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    if r.returncode != 0 or not Path(out).exists():
+        raise RuntimeError(f"{bag}: bom replay exited {r.returncode}: {r.stderr.strip().splitlines()[-1:] }")
+
+
+def job(args):
+    entry, corpus_dir, models, bom, config, draws, selection = args
+    out = Path(models) / f"{entry['name']}.json"
+    try:
+        if not out.exists():
+            fit(bom, Path(corpus_dir) / entry["continuous"][0], out, config)
+        return evaluate(entry, out, draws, selection)
+    except Exception as e:  # one object's failure is one line, the rest go on
+        return {"name": entry["name"], "error": str(e)}
+
+
+PLANNERS = ("bom", "oracle", "model_free")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--corpus", required=True, help="folder with manifest.json (bags/generate/corpus.py)")
+    ap.add_argument("--split", default="validation", choices=["tune", "validation", "all"])
+    ap.add_argument("--bom", default=str(record.REPO / "target/release/bom"))
+    ap.add_argument("--models", required=True, help="folder of bom's JSON summaries (made when missing)")
+    ap.add_argument("--config", help="bom config for the replays")
+    ap.add_argument("--json", help="write the report here")
+    ap.add_argument("--jobs", type=int, default=1)
+    ap.add_argument("--draws", type=int, default=64, help="posterior draws the bom planner weighs plans on")
+    ap.add_argument("--min-interactions", type=int, default=2)
+    ap.add_argument("--selection", default="robust", choices=["robust", "gentle"],
+                    help="bom planner's choice among pushes: most draws within tolerance, or the least force within 0.1 of that")
+    ap.add_argument("--only", help="comma-separated object names")
+    args = ap.parse_args(argv)
+    manifest = json.loads((Path(args.corpus) / "manifest.json").read_text())["objects"]
+    only = set(args.only.split(",")) if args.only else None
+    entries = [o for o in manifest if (args.split == "all" or o["split"] == args.split)
+               and o["interactions"] >= args.min_interactions and (only is None or o["name"] in only)]
+    Path(args.models).mkdir(parents=True, exist_ok=True)
+    jobs = [(e, args.corpus, args.models, args.bom, args.config, args.draws, args.selection) for e in entries]
+    with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as ex:
+        rows = list(ex.map(job, jobs))
+    scored = [r for r in rows if "error" not in r]
+    for r in rows:
+        if "error" in r:
+            print(f"{r['name']}: skipped: {r['error']}")
+            continue
+        t = r["task"]
+        unit = "deg" if t["kind"] == "revolute" else "cm"
+        k = 180 / math.pi if t["kind"] == "revolute" else 100.0
+        cells = [f"{p} {'ok' if r[p]['success'] else 'FAIL'} {k * r[p]['error']:.1f}{unit}" if "error" in r[p]
+                 else f"{p} FAIL ({r[p].get('reason')})" for p in PLANNERS]
+        print(f"{r['name']:28s} {t['kind']:9s} bom called {r['bom_called']:9s} " + " | ".join(cells))
+    agg = {p: (sum(r[p]["success"] for r in scored) / len(scored) if scored else None) for p in PLANNERS}
+    print(f"\nscored {len(scored)} of {len(rows)} objects ({args.split}, >= {args.min_interactions} interactions)")
+    print("| planner | success |\n|---|---|")
+    for p in PLANNERS:
+        print(f"| {p} | {agg[p]:.3f} |" if agg[p] is not None else f"| {p} | - |")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"split": args.split, "scored": len(scored), "objects": len(rows),
+                                               "success": agg, "rows": rows}, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
