@@ -816,8 +816,9 @@ fn kinodynamics(j: &JointModel, d: &DrawnJoint, p: &JointParams<f64>, q_ref: f64
 mod tests {
     use super::*;
 
-    /// The start state is the least-squares line's value at `S`: exact on a straight track, the
-    /// mean of a still part's frames, the last frame when there are fewer than three.
+    /// The start state is the least-squares line's value at `S`: exact on a straight track,
+    /// nearer a still part's true centre than its last noisy frame, none with fewer than three
+    /// frames (the caller then takes the last).
     #[test]
     fn the_start_centre_is_the_recent_line_at_s() {
         let v = Vector3::new(0.1, -0.2, 0.05);

@@ -406,7 +406,7 @@ def run_planner(scene, task, model, selection="robust"):
 
 def run_model_free(scene, task):
     hint = np.array(task["hint"])
-    state = {"moving_since": None, "slow": 0.0}
+    state = {"slow": 0.0}
 
     def at(t, speed):
         if t > 6.0:
@@ -443,7 +443,8 @@ def fit(bom, bag, out, config):
         cmd += ["--config", config]
     r = subprocess.run(cmd, capture_output=True, text=True)
     if r.returncode != 0 or not Path(out).exists():
-        raise RuntimeError(f"{bag}: bom replay exited {r.returncode}: {r.stderr.strip().splitlines()[-1:] }")
+        last = (r.stderr.strip().splitlines() or ["no message"])[-1]
+        raise RuntimeError(f"{bag}: bom replay exited {r.returncode}: {last}")
 
 
 def job(args):
