@@ -747,31 +747,34 @@ fn smoothed(recent: &[(f64, Vector3<f64>)], from: f64) -> Option<Vector3<f64>> {
     if recent.len() < 3 {
         return None;
     }
-    let n = recent.len() as f64;
-    let mt = recent.iter().map(|x| x.0).sum::<f64>() / n;
-    let my = recent.iter().map(|x| x.1).sum::<Vector3<f64>>() / n;
-    let stt: f64 = recent.iter().map(|x| (x.0 - mt).powi(2)).sum();
+    let (mt, my, slope) = line_fit(recent)?;
+    Some(my + slope * (from - mt))
+}
+
+/// The least-squares line through points `(t, y)`: `(mean t, mean y, slope)`, so that
+/// `y(t) = mean y + slope (t - mean t)`; `None` with fewer than two distinct stamps.
+fn line_fit<Y>(pts: &[(f64, Y)]) -> Option<(f64, Y, Y)>
+where
+    Y: Copy + std::ops::Sub<Output = Y> + std::ops::Mul<f64, Output = Y> + std::ops::Div<f64, Output = Y> + std::iter::Sum<Y>,
+{
+    if pts.len() < 2 {
+        return None;
+    }
+    let n = pts.len() as f64;
+    let mt = pts.iter().map(|x| x.0).sum::<f64>() / n;
+    let my = pts.iter().map(|x| x.1).sum::<Y>() / n;
+    let stt: f64 = pts.iter().map(|x| (x.0 - mt).powi(2)).sum();
     if stt <= 1e-12 {
         return None;
     }
-    let slope = recent.iter().map(|x| (x.1 - my) * (x.0 - mt)).sum::<Vector3<f64>>() / stt;
-    Some(my + slope * (from - mt))
+    Some((mt, my, pts.iter().map(|x| (x.1 - my) * (x.0 - mt)).sum::<Y>() / stt))
 }
 
 /// The joint's velocity at `S` \[m of path / s\]: least-squares slope of its coordinate over the
 /// recent observations (0 with fewer than two distinct stamps).
 fn velocity(p: &JointParams<f64>, recent: &[(f64, Vector3<f64>)]) -> f64 {
-    if recent.len() < 2 {
-        return 0.0;
-    }
     let pts: Vec<(f64, f64)> = recent.iter().map(|(t, y)| (*t, track_coordinate(p, y))).collect();
-    let n = pts.len() as f64;
-    let (mt, mq) = (pts.iter().map(|x| x.0).sum::<f64>() / n, pts.iter().map(|x| x.1).sum::<f64>() / n);
-    let stt: f64 = pts.iter().map(|x| (x.0 - mt).powi(2)).sum();
-    if stt <= 1e-12 {
-        return 0.0;
-    }
-    pts.iter().map(|x| (x.0 - mt) * (x.1 - mq)).sum::<f64>() / stt
+    line_fit(&pts).map_or(0.0, |(_, _, slope)| slope)
 }
 
 /// The physics' parameters of a drawn joint at `S`, with the adopted effects (their positions

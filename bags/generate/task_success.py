@@ -98,7 +98,7 @@ class Scene:
         the unit direction the handle moves in at the start towards the target (world)."""
         jname = list(self.spec.push_order or self.spec.handles)[0]
         j, kind, label = self.joint(jname)
-        m, d = self.rec.model, self.rec.data
+        m = self.rec.model
         lo, hi = (float(v) for v in m.jnt_range[j])
         q0 = self.q(j)
         closed, s = (lo, 1.0) if abs(lo) <= abs(hi) else (hi, -1.0)
@@ -107,11 +107,7 @@ class Scene:
             target = closed + s * 0.6 * (hi - lo)
         sign = 1.0 if target > q0 else -1.0
         h = self.rec.handle_point(jname)
-        if kind == "revolute":
-            hint = np.cross(d.xaxis[j], h - d.xanchor[j])
-        else:
-            hint = d.xaxis[j].copy()
-        hint = sign * hint / np.linalg.norm(hint)
+        hint = self.rec.push_direction(jname, sign, (0.0, 0.0))  # the recorder's push, along the motion
         return {"joint": jname, "kind": kind, "label": label, "q0": q0, "target": target, "tol": TOL[kind],
                 "range": [lo, hi], "handle": h.tolist(), "hint": hint.tolist()}
 

@@ -95,9 +95,9 @@ fn score(ev: &Evidence, i: usize, joint: JointType, pre: &[Displacement<f64>], m
     let (xi, q) = init_block(ev, i, joint, pre, model);
     let ll = block_pass(ev, i, joint, &xi, &q, pre, &[], model).0;
     let part = &ev.parts[i];
-    let n_obs: usize = (0..ev.len())
-        .map(|t| part.obs[t].map_or(0, |_| 3) + part.rot[t].as_ref().map_or(0, |r| r.axes.len()))
-        .sum();
+    // Observations in frame t: a position (3) and the rotation axes seen.
+    let frame_obs = |t: usize| part.obs[t].map_or(0, |_| 3) + part.rot[t].as_ref().map_or(0, |r| r.axes.len());
+    let n_obs: usize = (0..ev.len()).map(frame_obs).sum();
     let seen = part.obs.iter().filter(|o| o.is_some()).count();
     match penalty {
         CoordinatePenalty::Bic => {
@@ -109,7 +109,7 @@ fn score(ev: &Evidence, i: usize, joint: JointType, pre: &[Displacement<f64>], m
                 (0..ev.len())
                     .filter(|&t| part.obs[t].is_some())
                     .skip(1)
-                    .map(|t| 0.5 * ((3 + part.rot[t].as_ref().map_or(0, |r| r.axes.len())) as f64).ln())
+                    .map(|t| 0.5 * (frame_obs(t) as f64).ln())
                     .sum()
             } else {
                 0.0
