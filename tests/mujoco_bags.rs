@@ -311,11 +311,14 @@ fn the_physics_at_the_true_parameters_follows_every_push() {
 /// it, -16 nats): the run must end without it, and with no finding whose error does not fall.
 /// (Until stop 38 the weight was 0.1; with the likelihood on the registration's covariance no
 /// wrong effect is adopted there. A scan of the shipped bags at weights 0.05-0.3 found this and
-/// `drawer_limit_undeclared` at 0.2 as the runs that retract an effect.)
+/// `drawer_limit_undeclared` at 0.2 as the runs that retract an effect.) The adoption rule is
+/// run here at `max_error_ratio` 0.8, its default until issue 25: at the present 0.5 the damping
+/// is never adopted on this bag, so nothing is there to retract.
 #[test]
 fn an_effect_the_later_windows_refute_is_retracted() {
     let mut cfg = Config::new();
     cfg.perception.boundary_weight = 0.2;
+    cfg.criticism.max_error_ratio = 0.8;
     let (_, run) = replay_bag("microwave_spring", &cfg);
     let adopted: Vec<_> = run.updates.iter().flat_map(|u| u.criticism.adopted()).collect();
     let retracted: Vec<_> = run.updates.iter().flat_map(|u| u.criticism.retracted.clone()).collect();

@@ -108,14 +108,18 @@ def box_geoms(body, boxes, rgba, mass):
                       contype=0, conaffinity=0, group=1)
 
 
-def procedural(seed):
-    """A random box object (see the module docs): its `ObjectSpec` and a description."""
+def procedural(seed, tilt_override=None):
+    """A random box object (see the module docs): its `ObjectSpec` and a description. With
+    `tilt_override` (rad about world x and y), that tilt instead of the drawn one (the draws that
+    follow are the same either way)."""
     rng = np.random.default_rng(seed)
     W, D, H = rng.uniform(0.45, 0.9), rng.uniform(0.3, 0.5), rng.uniform(0.4, 0.9)
     t = 0.02  # wall thickness
     tilt = [0.0, 0.0, 0.0]
     if rng.random() < 0.35:
         tilt[int(rng.integers(0, 2))] = float(math.radians(rng.uniform(-15, 15)))
+    if tilt_override is not None:
+        tilt = [float(tilt_override[0]), float(tilt_override[1]), 0.0]
     yaw = float(math.radians(rng.uniform(-25, 25)))
     base_z = 0.3 + H / 2
     kinds = ["door", "drawer", "lid", "flap", "slider", "door_hatch", "door_latch", "drawer_box", "slider_flap"]
@@ -366,11 +370,12 @@ def asset_object(seed):
     return so, family
 
 
-def draw(seed):
-    """Object `seed`: an `ObjectSpec` ready to record, its family and a description."""
+def draw(seed, tilt=None):
+    """Object `seed`: an `ObjectSpec` ready to record, its family and a description; `tilt`
+    overrides a procedural object's tilt (see `procedural`)."""
     rng = np.random.default_rng(seed + 7919)
     if rng.random() < 0.7:
-        b, build_spec, target, desc = procedural(seed)
+        b, build_spec, target, desc = procedural(seed, tilt)
         so = ObjectSpec(f"procedural_{seed}", [], b.parts, b.handles, damping=b.damping, friction=b.friction,
                         builder=build_spec, gravity_off=True)
         so.camera_pos, so.camera_target = camera(rng, target, 1.7)
@@ -438,10 +443,14 @@ def record_object(out, index, seed0):
     return None
 
 
-def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def run(record_one, doc, default_objects, argv=None):
+    """The command line of a corpus script (`--out`, `--objects`, `--seed`, `--jobs`, `--only`):
+    record every object with `record_one(out, index, seed)` (a manifest row, or None when left
+    out) on `--jobs` processes, merge the rows into `OUT/manifest.json` (with `--only`, into the
+    rows already there) and return (objects, manifest path)."""
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     ap.add_argument("--out", required=True)
-    ap.add_argument("--objects", type=int, default=120)
+    ap.add_argument("--objects", type=int, default=default_objects)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--only", help="comma-separated object indices (remake those alone)")
@@ -450,7 +459,7 @@ def main(argv=None):
     out.mkdir(parents=True, exist_ok=True)
     indices = [int(i) for i in args.only.split(",")] if args.only else list(range(args.objects))
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as ex:
-        rows = list(ex.map(record_object, [out] * len(indices), indices, [args.seed] * len(indices)))
+        rows = list(ex.map(record_one, [out] * len(indices), indices, [args.seed] * len(indices)))
     manifest_path = out / "manifest.json"
     old = json.loads(manifest_path.read_text())["objects"] if manifest_path.exists() and args.only else []
     keep = {r["index"]: r for r in old}
@@ -459,8 +468,13 @@ def main(argv=None):
             keep[r["index"]] = r
     objects = [keep[i] for i in sorted(keep)]
     manifest_path.write_text(json.dumps({"seed": args.seed, "objects": objects}, indent=1) + "\n")
+    return objects, manifest_path
+
+
+def main(argv=None):
+    objects, path = run(record_object, __doc__, 120, argv)
     n_t = sum(o["split"] == "tune" for o in objects)
-    print(f"wrote {manifest_path}: {len(objects)} objects ({n_t} tune, {len(objects) - n_t} validation)")
+    print(f"wrote {path}: {len(objects)} objects ({n_t} tune, {len(objects) - n_t} validation)")
 
 
 if __name__ == "__main__":

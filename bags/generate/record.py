@@ -530,6 +530,11 @@ class Recorder:
                     effects.append({"part": part, "kind": "gravity", "tilt_about_y_rad": float(self.effects["gravity"])})
         return {"fixed_frame": "world", "parts": parts, "effects": effects}
 
+    def final_metadata(self):
+        """MCAP metadata records (name -> string map) written after the recording, when its checks
+        are known; none here."""
+        return {}
+
     # -- the recording -----------------------------------------------------------------------
 
     def plan(self, interactions):
@@ -578,6 +583,10 @@ class Recorder:
         margin = 0.3 * (hi - lo)
         return (sign > 0 and qv > hi - margin) or (sign < 0 and qv < lo + margin) or self.other_joint_near_stop(entry[4], q_start)
 
+    def stop_counts(self, jname):
+        """Whether joint `jname` reaching a stop in a dry push counts as a hit (all do here)."""
+        return True
+
     def dry_push(self, entry, sign, q_start):
         """Simulate one push from the current state, without recording, on a copy of the data:
         the pushed joint's largest excursion, and whether any joint came within 2% of its range
@@ -604,6 +613,8 @@ class Recorder:
                 now += m.opt.timestep
                 travel = max(travel, abs(d.qpos[m.jnt_qposadr[jid]] - q0))
                 for jname in self.spec_obj.handles:
+                    if not self.stop_counts(jname):
+                        continue
                     j = self.joint_id(jname)
                     lo, hi = m.jnt_range[j]
                     qv = d.qpos[m.jnt_qposadr[j]]
@@ -710,8 +721,8 @@ class Recorder:
             for jname in joints:
                 qv = d.qpos[m.jnt_qposadr[self.joint_id(jname)]]
                 q_min[jname], q_max[jname] = min(q_min[jname], qv), max(q_max[jname], qv)
-        w.finish()
         self.travel = {j: q_max[j] - q_min[j] for j in joints}
+        self.q_min, self.q_max = q_min, q_max
         self.limits_reached = []
         for jname in joints:
             lo, hi = m.jnt_range[self.joint_id(jname)]
@@ -724,6 +735,10 @@ class Recorder:
         self.parts_touched = [(self.part_names[a - 1], self.part_names[b - 1], t) for (a, b), t in touches.items()]
         for a, b, t in self.parts_touched:
             print(f"  contact: {a} touches {b} at {t:.3f} s")
+        # Metadata known only once the recording is done (a subclass's record of what acted).
+        for name, data in self.final_metadata().items():
+            w.add_metadata(name, data)
+        w.finish()
         return duration
 
 

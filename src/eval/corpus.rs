@@ -31,6 +31,7 @@ use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
 
+use super::criticism::{CriticismAggregate, CriticismRow, TrueEffect};
 use super::{evaluate, median, Metrics};
 use crate::config::Config;
 use crate::model::JointType;
@@ -58,6 +59,12 @@ pub struct CorpusObject {
     pub continuous: Vec<PathBuf>,
     #[serde(default)]
     pub episodes: Vec<PathBuf>,
+    /// Undeclared effects acting in the recordings (an effects corpus, issue 25), scored against
+    /// criticism's findings; absent in a structure corpus.
+    #[serde(default)]
+    pub effects: Option<Vec<TrueEffect>>,
+    #[serde(default)]
+    pub category: Option<String>,
 }
 
 fn all_split() -> String {
@@ -111,7 +118,7 @@ pub fn list(path: &Path) -> Result<Vec<CorpusObject>, CorpusError> {
             .collect();
         bags.sort();
         let name = d.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-        objects.push(CorpusObject { name, split: all_split(), family: None, continuous: bags.clone(), episodes: bags });
+        objects.push(CorpusObject { name, split: all_split(), family: None, continuous: bags.clone(), episodes: bags, effects: None, category: None });
     }
     Ok(objects)
 }
@@ -148,6 +155,9 @@ pub struct ObjectRow {
     pub svi_runtime_s: Option<f64>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub sampler: Option<SamplerRow>,
+    /// Criticism against the object's undeclared effects (effects corpus only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub criticism: Option<CriticismRow>,
 }
 
 /// BOM-NUTS's diagnostics of one object (as the JSON's `model.sampler`).
@@ -271,6 +281,9 @@ pub struct CorpusReport {
     pub table1: Option<Vec<Table1Row>>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub svi_vs_nuts: Option<IntervalComparison>,
+    /// With an effects corpus: criticism per effect kind, one per layout (issue 25).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub criticism: Option<Vec<CriticismAggregate>>,
     pub objects: Vec<ObjectRow>,
 }
 
@@ -319,6 +332,7 @@ fn score(o: &CorpusObject, layout: Layout, cfg: &Config, baselines: bool) -> Res
         runtime_s,
         metrics,
         calls,
+        criticism: o.effects.as_ref().map(|t| super::criticism::score(t, o.category.as_deref(), &run.findings, Some(post), Some(gt))),
         svi: svi_post.map(|p| evaluate(gt, p, false)),
         svi_runtime_s: sampler.as_ref().map(|r| runtime_s - r.runtime_s),
         sampler,
@@ -580,6 +594,12 @@ pub fn run(corpus: &Path, split: &str, layouts: &[Layout], cfg: &Config, jobs: u
     let first: Vec<&ObjectRow> = rows.iter().filter(|r| Some(&r.layout) == layouts.first()).collect();
     let table1 = (cfg.nuts.enabled || baselines).then(|| table1(&first));
     let svi_vs_nuts = cfg.nuts.enabled.then(|| svi_vs_nuts(&first));
+    let criticism = objects.iter().any(|o| o.effects.is_some()).then(|| {
+        layouts
+            .iter()
+            .map(|l| super::criticism::aggregate(&rows.iter().filter(|r| r.layout == *l).filter_map(|r| r.criticism.as_ref()).collect::<Vec<_>>()))
+            .collect()
+    });
     Ok(CorpusReport {
         corpus: corpus.display().to_string(),
         split: split.into(),
@@ -591,6 +611,7 @@ pub fn run(corpus: &Path, split: &str, layouts: &[Layout], cfg: &Config, jobs: u
         agreement,
         table1,
         svi_vs_nuts,
+        criticism,
         objects: rows,
     })
 }
@@ -665,6 +686,31 @@ pub fn render(r: &CorpusReport) -> String {
                 opt(row.runtime_s_median, 2)
             );
         }
+    }
+    for (l, c) in r.layouts.iter().zip(r.criticism.iter().flatten()) {
+        let _ = writeln!(s, "  criticism ({}, {} objects): kind: primary named (after <= before/3), median after/before, param ok, truth in 90% interval, secondary named", format!("{l:?}").to_lowercase(), c.objects);
+        for k in &c.per_kind {
+            let _ = writeln!(
+                s,
+                "    {:<18} {:>3} {:>3} ({:>3}) {:>6} {:>3}/{:<3} {:>3}/{:<3} {}/{}",
+                k.kind,
+                k.primary,
+                k.named,
+                k.named_third,
+                opt(k.ratio_median, 2),
+                k.param_ok[0],
+                k.param_ok[1],
+                k.in_interval[0],
+                k.in_interval[1],
+                k.secondary[0],
+                k.secondary[1]
+            );
+        }
+        let _ = writeln!(
+            s,
+            "    all primary: {}/{} named, {} with after <= before/3; effect-free objects with an added effect {}/{}; false alarms {}; extra friction absorbed {}/{}; findings with after >= before {}",
+            c.named, c.primary, c.named_third, c.effect_free_alarmed, c.effect_free, c.false_alarms, c.absorbed[0], c.absorbed[1], c.after_not_below_before
+        );
     }
     if let Some(c) = &r.svi_vs_nuts {
         let _ = writeln!(

@@ -4,6 +4,7 @@
 
 pub mod baselines;
 pub mod corpus;
+pub mod criticism;
 pub mod tracking;
 
 use nalgebra::Vector3;

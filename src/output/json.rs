@@ -140,6 +140,10 @@ pub struct FindingJson {
     pub effect: String,
     /// The effect's posterior medians (joint units), or the residual's correlations.
     pub params: BTreeMap<String, f64>,
+    /// 90% intervals of the effect's parameters, `[5%, 95%]` by name (not in the contract's
+    /// example; absent when unexplained).
+    #[serde(skip_serializing_if = "BTreeMap::is_empty")]
+    pub intervals_90: BTreeMap<String, [f64; 2]>,
     pub rmse_before_m: f64,
     pub rmse_after_m: f64,
     /// ELBO gain of the effect \[nats\] (the best candidate's when unexplained).
@@ -160,6 +164,7 @@ fn finding_json(f: &Finding) -> FindingJson {
         part: f.part,
         effect: f.name().into(),
         params: f.params.iter().cloned().collect(),
+        intervals_90: f.intervals.iter().cloned().collect(),
         rmse_before_m: f.rmse_before_m,
         rmse_after_m: f.rmse_after_m,
         evidence_nats: f.evidence_nats,

@@ -94,7 +94,14 @@ pub fn criticism_lines(run: &Run) -> Vec<String> {
 /// One finding in one line: the effect added and the held-out error before and after, or the
 /// pattern of an unexplained residual.
 pub fn finding_line(f: &Finding) -> String {
-    let params: Vec<String> = f.params.iter().map(|(k, v)| format!("{k} {v:.3}")).collect();
+    let params: Vec<String> = f
+        .params
+        .iter()
+        .map(|(k, v)| match f.intervals.iter().find(|(n, _)| n == k) {
+            Some((_, [lo, hi])) => format!("{k} {v:.3} [{lo:.3}, {hi:.3}]"),
+            None => format!("{k} {v:.3}"),
+        })
+        .collect();
     match f.effect {
         Some(_) => format!(
             "part {:>2}: added {} ({}): held-out RMSE {:.4} m -> {:.4} m, ELBO +{:.1} nats",
