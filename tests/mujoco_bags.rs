@@ -153,6 +153,11 @@ fn criticism_finds_the_undeclared_effect(name: &str, run: &bom::pipeline::Run) {
             assert!(!added.is_empty() && names.iter().all(|n| *n == effect), "{name}: effects added: {names:?}");
             for f in &added {
                 assert!(f.rmse_after_m <= f.rmse_before_m / 3.0, "{name}: part {}: held-out RMSE {:.4} -> {:.4} m", f.part, f.rmse_before_m, f.rmse_after_m);
+                // Every parameter has a 90% interval around its median (issue 25).
+                assert_eq!(f.intervals.len(), f.params.len(), "{name}: part {}: intervals {:?}", f.part, f.intervals);
+                for ((n, v), (m, [lo, hi])) in f.params.iter().zip(&f.intervals) {
+                    assert!(n == m && lo <= v && v <= hi && lo < hi, "{name}: part {}: {n} {v} in [{lo}, {hi}]", f.part);
+                }
             }
         }
         None => assert!(added.is_empty(), "{name}: false alarm: {:?}", added.iter().map(|f| f.name()).collect::<Vec<_>>()),
