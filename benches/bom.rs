@@ -1,6 +1,7 @@
 //! Benchmarks (`cargo bench`): the physics forward simulation and its gradient, the kinematic
 //! posterior of a real track, the dynamic posterior of a 3-part cabinet after one window,
-//! whole replays, and the posterior predictive of `bom predict`. Speed is measured here and by
+//! whole replays, model criticism against the posterior it criticises, and the posterior
+//! predictive of `bom predict`. Speed is measured here and by
 //! `bom replay --timing`, never in tests.
 
 use std::hint::black_box;
@@ -249,5 +250,28 @@ fn perception(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, physics, inference, nuts, perception, prediction);
+/// Model criticism (issue 25: its time per posterior at most twice the posterior's own): the
+/// dynamic posterior of `hingecabinet_spring_undeclared` over all six windows, and the criticism
+/// of that posterior (held-out refits, then every candidate effect on both doors, whose
+/// springs are undeclared: the costly case).
+fn criticism(c: &mut Criterion) {
+    let cfg = Config::new();
+    let bag: PathBuf = "bags/mujoco/hingecabinet_spring_undeclared.mcap".into();
+    let run = bom::pipeline::replay(std::slice::from_ref(&bag), &cfg).expect("bundled bag");
+    let mut diag = bom::diagnostics::Diagnostics::default();
+    let rec = bom::input::decode_recording(&[bom::input::read_bag(&bag, &mut diag).expect("bundled bag")], &cfg.topics, &cfg.fixed_frame, &mut diag);
+    let ev = Evidence::new(&run.tracks, &run.geometry, &run.windows, &rec.wrenches, &Default::default(), &bom::pipeline::grid(&cfg));
+    let fitted = svi::fit(&ev, &cfg.model, &cfg.inference, None).expect("posterior");
+    let mut g = c.benchmark_group("criticism");
+    g.sample_size(10);
+    g.bench_function("dynamic BOM-SVI posterior, hinge cabinet with undeclared springs, 6 windows", |b| {
+        b.iter(|| svi::fit(black_box(&ev), &cfg.model, &cfg.inference, None))
+    });
+    g.bench_function("criticism of that posterior", |b| {
+        b.iter(|| bom::criticism::criticise(black_box(&ev), &fitted.posterior, &Default::default(), &cfg.model.dynamics, &cfg.criticism))
+    });
+    g.finish();
+}
+
+criterion_group!(benches, physics, inference, nuts, perception, prediction, criticism);
 criterion_main!(benches);
