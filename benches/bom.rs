@@ -82,6 +82,16 @@ fn physics(c: &mut Criterion) {
     });
 }
 
+/// A bundled bag replayed (tracks, geometry, windows) and decoded (its wrenches), for building
+/// dynamic-mode evidence.
+fn replayed(bag: &str, cfg: &Config) -> (bom::pipeline::Run, bom::input::Recording) {
+    let bag = PathBuf::from(bag);
+    let run = bom::pipeline::replay(std::slice::from_ref(&bag), cfg).expect("bundled bag");
+    let mut diag = bom::diagnostics::Diagnostics::default();
+    let rec = bom::input::decode_recording(&[bom::input::read_bag(&bag, &mut diag).expect("bundled bag")], &cfg.topics, &cfg.fixed_frame, &mut diag);
+    (run, rec)
+}
+
 fn inference(c: &mut Criterion) {
     let cfg = Config::new();
     let bag: PathBuf = "bags/sturm/left_door_001.mcap".into();
@@ -94,11 +104,8 @@ fn inference(c: &mut Criterion) {
     });
     // Dynamic mode: the posterior of a 3-part cabinet (two doors) after its first interaction
     // window, from its recorded wrenches (the "3-part object after one window").
-    let cab: PathBuf = "bags/mujoco/hingecabinet.mcap".into();
-    let run3 = bom::pipeline::replay(std::slice::from_ref(&cab), &cfg).expect("bundled bag");
+    let (run3, rec) = replayed("bags/mujoco/hingecabinet.mcap", &cfg);
     let springs = run3.ground_truth.as_ref().map(bom::pipeline::declared_effects).unwrap_or_default();
-    let mut diag = bom::diagnostics::Diagnostics::default();
-    let rec = bom::input::decode_recording(&[bom::input::read_bag(&cab, &mut diag).expect("bundled bag")], &cfg.topics, &cfg.fixed_frame, &mut diag);
     let ev3 = Evidence::new(&run3.tracks, &run3.geometry, &run3.windows[..1], &rec.wrenches, &springs, &bom::pipeline::grid(&cfg));
     g.sample_size(10);
     g.bench_function("dynamic BOM-SVI posterior, 3-part hinge cabinet, first window", |b| {
@@ -256,10 +263,7 @@ fn perception(c: &mut Criterion) {
 /// springs are undeclared: the costly case).
 fn criticism(c: &mut Criterion) {
     let cfg = Config::new();
-    let bag: PathBuf = "bags/mujoco/hingecabinet_spring_undeclared.mcap".into();
-    let run = bom::pipeline::replay(std::slice::from_ref(&bag), &cfg).expect("bundled bag");
-    let mut diag = bom::diagnostics::Diagnostics::default();
-    let rec = bom::input::decode_recording(&[bom::input::read_bag(&bag, &mut diag).expect("bundled bag")], &cfg.topics, &cfg.fixed_frame, &mut diag);
+    let (run, rec) = replayed("bags/mujoco/hingecabinet_spring_undeclared.mcap", &cfg);
     let ev = Evidence::new(&run.tracks, &run.geometry, &run.windows, &rec.wrenches, &Default::default(), &bom::pipeline::grid(&cfg));
     let fitted = svi::fit(&ev, &cfg.model, &cfg.inference, None).expect("posterior");
     let mut g = c.benchmark_group("criticism");

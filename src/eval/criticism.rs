@@ -29,6 +29,7 @@ use super::median;
 use crate::criticism::Finding;
 use crate::inference::Posterior;
 use crate::input::GroundTruth;
+use crate::model::effects::EffectKind;
 
 /// One undeclared effect of a corpus object (see the module docs).
 #[derive(Debug, Clone, Deserialize, Serialize, PartialEq)]
@@ -60,6 +61,11 @@ impl TrueEffect {
     /// Whether criticism can be asked to find this effect (module docs).
     pub fn scorable(&self) -> bool {
         self.pushes >= 2 && self.hit != Some(false) && self.kind != "extra_friction"
+    }
+
+    /// Extra Coulomb friction on a part pushed at least twice: the base model should absorb it.
+    pub fn absorbable(&self) -> bool {
+        self.kind == "extra_friction" && self.pushes >= 2
     }
 }
 
@@ -146,15 +152,10 @@ pub fn score(truth: &[TrueEffect], category: Option<&str>, findings: &[Finding],
                     let q0 = t.q_start.unwrap_or(0.0);
                     let revolute = gt.and_then(|g| g.parts.iter().find(|p| p.label == t.part)).is_some_and(|p| p.joint == "revolute");
                     let est: Vec<f64> = ["lower", "upper"].iter().filter_map(|n| param(n)).collect();
-                    let errs: Vec<f64> = [t.lower, t.upper]
-                        .iter()
-                        .flatten()
-                        .map(|&q| s * (q - q0))
-                        .map(|v| est.iter().map(|e| (e - v).abs()).fold(f64::INFINITY, f64::min))
-                        .collect();
-                    let covered = [t.lower, t.upper].iter().flatten().map(|&q| s * (q - q0)).all(|v| {
-                        ["lower", "upper"].iter().filter_map(|n| interval(n)).any(|[lo, hi]| lo <= v && v <= hi)
-                    });
+                    // The true stops in bom's coordinate (module docs).
+                    let stops: Vec<f64> = [t.lower, t.upper].iter().flatten().map(|&q| s * (q - q0)).collect();
+                    let errs: Vec<f64> = stops.iter().map(|v| est.iter().map(|e| (e - v).abs()).fold(f64::INFINITY, f64::min)).collect();
+                    let covered = stops.iter().all(|&v| ["lower", "upper"].iter().filter_map(|n| interval(n)).any(|[lo, hi]| lo <= v && v <= hi));
                     if f.is_none() || errs.is_empty() {
                         (None, None, None)
                     } else {
@@ -179,12 +180,12 @@ pub fn score(truth: &[TrueEffect], category: Option<&str>, findings: &[Finding],
         .collect();
     let absorbed = truth
         .iter()
-        .filter(|t| t.kind == "extra_friction" && t.pushes >= 2)
+        .filter(|t| t.absorbable())
         .map(|t| (t.part, !added.iter().any(|a| a.part == t.part)))
         .collect();
     CriticismRow {
         category: category.map(str::to_string),
-        effect_free: !truth.iter().any(|t| t.scorable() || (t.kind == "extra_friction" && t.pushes >= 2)),
+        effect_free: !truth.iter().any(|t| t.scorable() || t.absorbable()),
         false_alarms: added.iter().filter(|a| !a.true_effect).count(),
         after_not_below_before: added.iter().filter(|a| a.rmse_after_m >= a.rmse_before_m).count(),
         effects,
@@ -247,7 +248,7 @@ pub struct CriticismAggregate {
 
 /// Aggregate per effect kind (see [`CriticismAggregate`]).
 pub fn aggregate(rows: &[&CriticismRow]) -> CriticismAggregate {
-    let kinds = ["spring", "joint_limit", "gravity", "quadratic_damping"];
+    let kinds = EffectKind::ALL.map(EffectKind::name);
     let all: Vec<&EffectScore> = rows.iter().flat_map(|r| r.effects.iter()).collect();
     let third = |e: &EffectScore| e.named && matches!((e.rmse_before_m, e.rmse_after_m), (Some(b), Some(a)) if a <= b / 3.0);
     let per_kind = kinds
@@ -286,7 +287,6 @@ pub fn aggregate(rows: &[&CriticismRow]) -> CriticismAggregate {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::model::effects::EffectKind;
 
     fn finding(part: u32, kind: EffectKind, params: &[(&str, f64)], before: f64, after: f64) -> Finding {
         Finding {
