@@ -9,7 +9,8 @@
 //!    prior of [`crate::model::dynamics`] with the observed coordinates in place of the latent
 //!    ones), and the held-out window is predicted from its first frame at rest under its measured
 //!    wrench. The residual — observed minus predicted coordinate and centre of mass — is laid
-//!    against joint position, velocity and its sign, applied force and time ([`Pattern`]).
+//!    against joint position, velocity and its sign, applied force and time, and split by the
+//!    phase of the push it falls in ([`Pattern`]).
 //! 2. **Diagnosis**: when the held-out centre-of-mass RMSE exceeds what the observation noise
 //!    explains, the joint is refitted with each candidate effect of [`crate::model::effects`]
 //!    (spring, joint limit below, above or both, gravity, quadratic damping) and the candidates are compared by
@@ -20,7 +21,8 @@
 //!    an approximation) and it cuts the held-out error (`max_error_ratio`, default to at most half:
 //!    chosen on the `tune` split of the effects corpus, README "Model criticism on objects and
 //!    effects it was not tuned on"); otherwise the part gets an
-//!    `unexplained` finding with its residual pattern.
+//!    `unexplained` finding with its residual's diagnosis: the signals it correlates with and where
+//!    in the pushes it lies ([`Phases`]).
 //! 3. The caller (the pipeline) keeps adopted effects in the model for later windows and refits.
 //!    Each later criticism measures every adopted effect again on all windows so far, and one
 //!    that no longer meets the adoption rule there is retracted ([`Criticism::retracted`]).
@@ -39,7 +41,7 @@ use crate::model::dynamics::{self, DynamicsConfig};
 use crate::model::effects::{EffectKind, EffectSet, LimitSpec};
 use crate::model::likelihood::Evidence;
 use crate::model::JointType;
-pub use residuals::{Pattern, ResidualPoint};
+pub use residuals::{Pattern, Phases, ResidualPoint};
 use residuals::{part_transforms, rmse, JointSeries};
 
 /// Settings of model criticism (`criticism` section of the config).
@@ -85,8 +87,9 @@ pub struct Finding {
     /// The stop's side and anchor, for a joint limit.
     pub limit: Option<LimitSpec>,
     /// Posterior medians of the effect's parameters (joint units: N/m or N·m/rad, metres or
-    /// radians of the joint coordinate, kg), or the residual's pattern (correlations) when
-    /// unexplained.
+    /// radians of the joint coordinate, kg), or the residual's diagnosis when unexplained
+    /// ([`Pattern::diagnosis`]: the signals it correlates with, its error in each phase of the
+    /// pushes and when it peaks).
     pub params: Vec<(String, f64)>,
     /// 90% intervals of the same parameters (5% and 95% quantiles of each parameter's marginal
     /// under the Laplace guide), in `params`' order; empty when unexplained.
@@ -265,7 +268,7 @@ pub fn criticise(ev: &Evidence, post: &Posterior, adopted: &BTreeMap<u32, Effect
                 part: series.label,
                 effect: None,
                 limit: None,
-                params: pattern.entries().iter().map(|(n, v)| (n.to_string(), *v)).collect(),
+                params: pattern.diagnosis().iter().map(|(n, v)| (n.to_string(), *v)).collect(),
                 intervals: Vec::new(),
                 rmse_before_m: before,
                 rmse_after_m: before,

@@ -242,9 +242,16 @@ pub fn rmse(points: &[ResidualPoint]) -> f64 {
     (points.iter().map(|p| p.com_error_m * p.com_error_m).sum::<f64>() / points.len() as f64).sqrt()
 }
 
-/// The structure of a residual: its correlation with joint position, velocity, the velocity's
-/// sign, the applied force and the time since the window's start (Pearson; 0 where a quantity
-/// does not vary).
+/// The structure of a residual: which signal it follows — its correlation with joint position,
+/// velocity, the velocity's sign, the applied force and the time since the window's start
+/// (Pearson; 0 where a quantity does not vary) — and where in the window it lies: its
+/// centre-of-mass RMS error \[m\] in each phase of a push ([`Phases`]) and when it peaks.
+///
+/// Why both (issue 25): a correlation says what the missing term depends on, the phases say when
+/// it acts. An error that grows only while the part coasts points at the damping law (quadratic
+/// damping, a latch), one that appears at rest after the push at a restoring or holding force (a
+/// spring, gravity, a stop the part rests against), one confined to the push at the force's
+/// transmission (the contact, the lever arm).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct Pattern {
     pub position: f64,
@@ -252,6 +259,61 @@ pub struct Pattern {
     pub velocity_sign: f64,
     pub force: f64,
     pub time: f64,
+    pub phases: Phases,
+}
+
+/// Where in its windows a residual lies: the centre-of-mass RMS error \[m\] over the held-out
+/// frames of each phase (0 where a phase has no frame) and the time of the largest error as a
+/// fraction of its window's held-out span (0 at its first frame, 1 at its last).
+///
+/// Phases, per window: *push* — the applied generalised force above a tenth of the window's
+/// largest; *coast* — no push, the joint moving faster than a tenth of the window's largest
+/// observed speed; *rest* — neither. Thresholds relative to each window, so that they hold for
+/// any force scale and units (N or N·m, m/s or rad/s of path).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Phases {
+    pub rmse_push_m: f64,
+    pub rmse_coast_m: f64,
+    pub rmse_rest_m: f64,
+    pub peak_at: f64,
+}
+
+impl Phases {
+    pub fn of(points: &[ResidualPoint]) -> Phases {
+        let mut windows: Vec<usize> = points.iter().map(|p| p.window).collect();
+        windows.sort_unstable();
+        windows.dedup();
+        let (mut sq, mut n) = ([0.0f64; 3], [0usize; 3]);
+        let mut peak: Option<(f64, f64)> = None;
+        for w in windows {
+            let pts: Vec<&ResidualPoint> = points.iter().filter(|p| p.window == w).collect();
+            let max_f = pts.iter().map(|p| p.force.abs()).fold(0.0, f64::max);
+            let max_v = pts.iter().map(|p| p.velocity.abs()).fold(0.0, f64::max);
+            let (t0, t1) = pts.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| (a.min(p.since_start), b.max(p.since_start)));
+            for p in &pts {
+                let phase = if max_f > 0.0 && p.force.abs() > 0.1 * max_f {
+                    0
+                } else if max_v > 0.0 && p.velocity.abs() > 0.1 * max_v {
+                    1
+                } else {
+                    2
+                };
+                sq[phase] += p.com_error_m * p.com_error_m;
+                n[phase] += 1;
+                if peak.is_none_or(|(e, _)| p.com_error_m > e) {
+                    let at = if t1 > t0 { (p.since_start - t0) / (t1 - t0) } else { 0.0 };
+                    peak = Some((p.com_error_m, at));
+                }
+            }
+        }
+        let rms = |k: usize| if n[k] > 0 { (sq[k] / n[k] as f64).sqrt() } else { 0.0 };
+        Phases { rmse_push_m: rms(0), rmse_coast_m: rms(1), rmse_rest_m: rms(2), peak_at: peak.map_or(0.0, |p| p.1) }
+    }
+
+    /// `(name, value)` pairs, in the order of the fields.
+    pub fn entries(&self) -> [(&'static str, f64); 4] {
+        [("rmse_push_m", self.rmse_push_m), ("rmse_coast_m", self.rmse_coast_m), ("rmse_rest_m", self.rmse_rest_m), ("peak_at", self.peak_at)]
+    }
 }
 
 impl Pattern {
@@ -264,10 +326,17 @@ impl Pattern {
             velocity_sign: corr(points.iter().map(|p| if p.velocity.abs() < 1e-3 { 0.0 } else { p.velocity.signum() }).collect()),
             force: corr(points.iter().map(|p| p.force).collect()),
             time: corr(points.iter().map(|p| p.since_start).collect()),
+            phases: Phases::of(points),
         }
     }
 
-    /// `(name, correlation)` pairs, in the order of the fields.
+    /// Every entry of the diagnosis: the correlations ([`Pattern::entries`]) then the phases
+    /// ([`Phases::entries`]).
+    pub fn diagnosis(&self) -> Vec<(&'static str, f64)> {
+        self.entries().into_iter().chain(self.phases.entries()).collect()
+    }
+
+    /// `(name, correlation)` pairs, in the order of the correlation fields.
     pub fn entries(&self) -> [(&'static str, f64); 5] {
         [
             ("corr_position", self.position),
@@ -300,5 +369,41 @@ fn pearson(x: &[f64], y: &[f64]) -> f64 {
         0.0
     } else {
         sxy / (sxx * syy).sqrt()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn point(window: usize, since_start: f64, force: f64, velocity: f64, com_error_m: f64) -> ResidualPoint {
+        ResidualPoint { window, t: since_start, since_start, observed: 0.0, predicted: 0.0, com_error_m, velocity, force }
+    }
+
+    /// A push (force on), a coast (force off, moving) and a rest: each frame's error lands in its
+    /// phase, relative to each window's own force and speed scales, and the peak is placed in its
+    /// window's span.
+    #[test]
+    fn phases_split_the_error_by_the_push_it_falls_in() {
+        let mut pts = Vec::new();
+        for k in 0..10 {
+            let t = k as f64 * 0.1;
+            // Window 0 in newtons and m/s: push 0-0.3 s, coast 0.4-0.6 s, rest after; error 1 cm at rest.
+            let (f, v, e) = match k {
+                0..=3 => (5.0, 0.2, 0.0),
+                4..=6 => (0.0, 0.1, 0.0),
+                _ => (0.0, 0.001, 0.01),
+            };
+            pts.push(point(0, t, f, v, e));
+            // Window 1 a thousand times smaller force and speed: the same phases; error 2 cm coasting.
+            pts.push(point(1, t, f * 1e-3, v * 1e-3, if (4..=6).contains(&k) { 0.02 } else { 0.0 }));
+        }
+        let p = Phases::of(&pts);
+        assert_eq!(p.rmse_push_m, 0.0);
+        assert!((p.rmse_coast_m - (0.02f64.powi(2) * 3.0 / 6.0).sqrt()).abs() < 1e-12, "{p:?}");
+        assert!((p.rmse_rest_m - (0.01f64.powi(2) * 3.0 / 6.0).sqrt()).abs() < 1e-12, "{p:?}");
+        // The largest error (2 cm) first at 0.4 s of a window spanning 0-0.9 s.
+        assert!((p.peak_at - 0.4 / 0.9).abs() < 1e-12, "{p:?}");
+        assert_eq!(Phases::of(&[]), Phases::default());
     }
 }

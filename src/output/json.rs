@@ -267,7 +267,7 @@ pub fn summary(run: &Run) -> Summary {
                         part: p.label,
                         rmse_m: finite(p.rmse_m),
                         noise_rmse_m: p.noise_rmse_m,
-                        pattern: p.pattern.entries().iter().map(|(k, v)| (k.to_string(), *v)).collect(),
+                        pattern: p.pattern.diagnosis().iter().map(|(k, v)| (k.to_string(), *v)).collect(),
                     })
                     .collect()
             })

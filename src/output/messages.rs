@@ -142,7 +142,7 @@ pub fn pose_array(poses: &[Isometry3<f64>], stamp: Time, fixed_frame: &str) -> P
 }
 
 /// `bom_msgs/ModelCriticism` of findings: per finding the part, the effect (or `unexplained`),
-/// its parameters by name (joint units; the residual's correlations when unexplained) and the
+/// its parameters by name (joint units; the residual's diagnosis when unexplained) and the
 /// held-out centre-of-mass RMSE before and after \[m\].
 pub fn model_criticism(findings: &[Finding], stamp: Time, fixed_frame: &str) -> ModelCriticism {
     ModelCriticism {
