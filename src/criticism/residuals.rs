@@ -279,6 +279,8 @@ pub struct Phases {
 }
 
 impl Phases {
+    /// The phases of one part's held-out residual points (any number of windows; all zero when
+    /// there are none).
     pub fn of(points: &[ResidualPoint]) -> Phases {
         let mut windows: Vec<usize> = points.iter().map(|p| p.window).collect();
         windows.sort_unstable();
