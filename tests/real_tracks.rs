@@ -111,7 +111,7 @@ fn cut_index(points: &[nalgebra::Vector3<f64>], revolute: bool, deg: f64) -> usi
 /// every drawer and sliding-door track (15/90 and 25/90 of its travel): 94 short tracks. Frames of
 /// such a short track are closer in time than perception's errors are correlated, and counted
 /// as independent they called these arcs and lines either way at P = 1.00 (9 wrong calls at
-/// P >= 0.95 before the coarsened comparison, `inference.coarsen_comparison`). What is asked is
+/// P >= 0.95 before the coarsened comparison, `inference.coarsen`). What is asked is
 /// what a planner needs: right, or honestly unsure — at most one wrong call at P >= 0.95 and
 /// a Brier score of the type probabilities no worse than 0.33 (summed over the three types).
 #[test]
