@@ -127,9 +127,9 @@ pub struct SviConfig {
     /// enter its joint type's natural-gradient target times `n_eff / n` of its residuals (see
     /// [`comparison_weights`]), and in kinematic mode its axis spread is widened by `n / n_eff`
     /// (dynamic mode widens it by [`position_inflation`] anyway); elsewhere frames count as
-    /// independent observations. Parents
-    /// are compared on every frame: scaled too, the corpus's `tune` split in kinematic mode
-    /// (episodes) had graph MSE 0.046 instead of 0.043 and a Brier score of 0.309 instead of 0.296.
+    /// independent observations. Parents are compared on every frame: scaled too, the corpus's
+    /// `tune` split in kinematic mode (episodes) had graph MSE 0.046 instead of 0.043 and a Brier
+    /// score of 0.309 instead of 0.296.
     pub coarsen: Coarsen,
     /// Dynamic mode: grid frames up to this long after a window \[s\] (and before the next) join
     /// the evidence as the joint at rest, outside the physics window
