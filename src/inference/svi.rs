@@ -125,8 +125,8 @@ pub struct SviConfig {
     pub max_frames: usize,
     /// Where the evidence counts by its effective number of frames: each part's conditional ELBOs
     /// enter its joint type's natural-gradient target times `n_eff / n` of its residuals (see
-    /// [`comparison_weights`]), and in kinematic mode its axis spread is widened by `n / n_eff`
-    /// (dynamic mode widens it by [`position_inflation`] anyway); elsewhere frames count as
+    /// `comparison_weights`), and in kinematic mode its axis spread is widened by `n / n_eff`
+    /// (dynamic mode widens it by `position_inflation` anyway); elsewhere frames count as
     /// independent observations. Parents are compared on every frame: scaled too, the corpus's
     /// `tune` split in kinematic mode (episodes) had graph MSE 0.046 instead of 0.043 and a Brier
     /// score of 0.309 instead of 0.296.
