@@ -449,10 +449,7 @@ fn comparison_weights(ev: &Evidence, layout: &Layout, theta: &[f64], parents: &[
 /// length `n` (Marriott & Pope, *Biometrika* 41, 1954; a short window's twenty frames are where
 /// it matters) and clamped to `[0, 0.99]`; 1 with fewer than 8 consecutive pairs.
 fn independent_share(series: &[Vec<f64>]) -> f64 {
-    let Some(rho) = lag1_autocorrelation(series) else { return 1.0 };
-    let used: Vec<usize> = series.iter().map(Vec::len).filter(|&l| l > 1).collect();
-    let n = used.iter().sum::<usize>() as f64 / used.len().max(1) as f64;
-    1.0 / ar1_mean_variance_factor((rho + (1.0 + 3.0 * rho) / n).clamp(0.0, 0.99), n)
+    1.0 / ar1_factor(series, true)
 }
 
 /// The variance inflation factor that the windows' disagreement calls for: the least `c >= 1`
@@ -538,11 +535,18 @@ fn variance_inflation(ev: &Evidence, gq: &[f64]) -> f64 {
 /// the pooled `rho` of several series (see [`lag1_autocorrelation`], clamped to `[0, 0.99]`) and
 /// `n` their mean length; 1 when it cannot be estimated.
 fn ar1_inflation(series: &[Vec<f64>]) -> f64 {
+    ar1_factor(series, false)
+}
+
+/// [`ar1_mean_variance_factor`] at the pooled lag-1 autocorrelation of `series` and their mean
+/// length `n`, the autocorrelation raised by `(1 + 3 rho) / n` first when `bias_corrected`, then
+/// clamped to `[0, 0.99]`; 1 when it cannot be estimated.
+fn ar1_factor(series: &[Vec<f64>], bias_corrected: bool) -> f64 {
     let Some(rho) = lag1_autocorrelation(series) else { return 1.0 };
-    let rho = rho.clamp(0.0, 0.99);
     let used: Vec<usize> = series.iter().map(Vec::len).filter(|&l| l > 1).collect();
     let n = used.iter().sum::<usize>() as f64 / used.len().max(1) as f64;
-    ar1_mean_variance_factor(rho, n)
+    let rho = if bias_corrected { rho + (1.0 + 3.0 * rho) / n } else { rho };
+    ar1_mean_variance_factor(rho.clamp(0.0, 0.99), n)
 }
 
 /// `n Var(mean of n AR(1) terms) / Var(one term)` for lag-1 autocorrelation `rho` in `[0, 1)`
@@ -711,6 +715,9 @@ fn fit_from(
     if !ev.windows.is_empty() {
         laplace_kinodynamics(ev, &layout, &mut theta, &mut inflation, &mut [], &start.parent, &start_types, model, true, false);
     }
+    let map_tree = |theta: &[f64]| -> Vec<usize> {
+        tree::max_arborescence(&(0..n).map(|i| theta[layout.parent_logits[i]..layout.parent_logits[i] + n + 1].to_vec()).collect::<Vec<_>>())
+    };
     let map_types = |theta: &[f64]| -> Vec<usize> {
         (0..n)
             .map(|i| {
@@ -775,7 +782,7 @@ fn fit_from(
         Coarsen::All => true,
     };
     let mut zeta = if coarsen {
-        let parents = if phase == 1 { start.parent.clone() } else { tree::max_arborescence(&(0..n).map(|i| theta[layout.parent_logits[i]..layout.parent_logits[i] + n + 1].to_vec()).collect::<Vec<_>>()) };
+        let parents = if phase == 1 { start.parent.clone() } else { map_tree(&theta) };
         let types = if phase == 1 { start_types.clone() } else { map_types(&theta) };
         comparison_weights(ev, &layout, &theta, &parents, &types, model)
     } else {
@@ -1035,8 +1042,7 @@ fn fit_from(
                     let (parents, types) = if phase == 1 {
                         (start.parent.clone(), start_types.clone())
                     } else {
-                        let w: Vec<Vec<f64>> = (0..n).map(|i| theta[layout.parent_logits[i]..layout.parent_logits[i] + n + 1].to_vec()).collect();
-                        (tree::max_arborescence(&w), map_types(&theta))
+                        (map_tree(&theta), map_types(&theta))
                     };
                     if !ev.windows.is_empty() {
                         laplace_kinodynamics(ev, &layout, &mut theta, &mut inflation, &mut [], &parents, &types, model, false, false);
