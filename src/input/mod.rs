@@ -411,6 +411,11 @@ pub struct CloudFrame {
     pub points: Vec<Point3<f64>>,
     /// Part label of each point (>= 1).
     pub labels: Vec<u32>,
+    /// Where the points were seen from \[m\], fixed frame: the origin of the cloud's
+    /// `header.frame_id` (a depth camera's optical frame), or `None` when the cloud came in the
+    /// fixed frame itself (its sensor is then unknown). Perception uses it to tell which of two
+    /// neighbouring parts hides the other.
+    pub viewpoint: Option<Point3<f64>>,
 }
 
 /// One applied wrench, in the fixed frame.
@@ -557,9 +562,12 @@ pub fn decode_cloud(topic: &str, cloud: &PointCloud2, limits: &InputLimits, diag
 }
 
 /// A decoded cloud in the fixed frame: `iso` maps the cloud's frame into it; `stamp` in seconds.
+/// The viewpoint is the cloud frame's origin, unless `iso` is the identity (a cloud published in
+/// the fixed frame, whose sensor position is not known).
 pub fn cloud_frame(lp: LabeledPoints, iso: &nalgebra::Isometry3<f64>, stamp: f64) -> CloudFrame {
     let points = lp.points.iter().map(|p| iso * Point3::new(p[0], p[1], p[2])).collect();
-    CloudFrame { stamp, points, labels: lp.labels }
+    let viewpoint = (*iso != nalgebra::Isometry3::identity()).then(|| iso * Point3::origin());
+    CloudFrame { stamp, points, labels: lp.labels, viewpoint }
 }
 
 /// Whether every force and torque component is finite and the force and torque are within

@@ -14,7 +14,8 @@
 //!    kernel's scale is the noise of the points, estimated from each frame's residuals (1.4826 x
 //!    their median absolute point-to-plane distance, within `[point_sd_min_m, point_sd_max_m]`):
 //!    a fixed scale would make millimetre motions of a precisely seen part look insignificant. Points within `boundary_m` of a point of
-//!    another part (where segmentation swaps labels) count with `boundary_weight`.
+//!    another part (where segmentation swaps labels) count with `boundary_weight`, or
+//!    `edge_weight` where they are their own part's outline (see `split_parts` in the parent module).
 //! 2. **ICP**: Gauss-Newton with iteratively reweighted correspondences, the first half of the
 //!    iterations matching within `match_gate_m`, the second half within `fine_gate_m`.
 //! 3. **Hypotheses**: the previous pose, the reference pose, and ICP from the previous pose, from
@@ -298,7 +299,8 @@ impl Scales {
 pub struct FramePoints<'a> {
     /// Points \[m\], fixed frame.
     pub points: &'a [Vector3<f64>],
-    /// Weight of each point (1, or `boundary_weight` near another part).
+    /// Weight of each point (1; near another part `boundary_weight`, or `edge_weight` on the
+    /// part's own outline).
     pub weights: &'a [f64],
 }
 
