@@ -2,7 +2,8 @@
 bom's posterior, on the true object in MuJoCo.
 
     python bags/generate/task_success.py --corpus corpus --split validation --bom target/release/bom \\
-        --models models/ --json success.json [--jobs 2] [--draws 64] [--config FILE] [--min-interactions 2]
+        --models models/ --json success.json [--jobs 2] [--draws 64] [--config FILE] [--min-interactions 2] \\
+        [--control open|closed]
 
 For every corpus object (of the split, with at least `--min-interactions` interactions) bom's
 model is the JSON summary of `bom replay` on the object's continuous bag (made in `--models` when
@@ -13,7 +14,10 @@ the end of the joint's range nearer 0). Success: the part comes to rest within 5
 of the target, and nothing was hit (no joint within 2% of its range of a stop, no two parts in
 contact), as the recorder checks its recordings.
 
-Three planners, each executed open loop on the true object:
+Three planners, each executed on the true object open loop (`--control open`, the default) or,
+for `bom` and `oracle`, closed loop (`--control closed`, class `Feedback`: the open-loop push,
+then the part's coordinate observed through the model at 30 Hz with 2 mm noise, and a new plan
+and push whenever the part rests short of the target):
 - `bom`: the posterior's MAP joint type, its axis, the part's centre of mass and unit inertia, and
   the medians of damping, Coulomb friction and mass plan a push; the posterior's spread (axis
   sds, the kinodynamic 90% intervals) is sampled into `--draws` models and the plan chosen is the
@@ -62,6 +66,14 @@ DT = 0.002
 F_MAX = 40.0
 MODEL_FREE_N = 8.0
 SETTLE_MAX_S = 5.0
+# Closed loop (`--control closed`), set before any run: the depth camera's rate, a handle
+# position noise of the order of bom's part tracking, 0.5 s of observations to call the part
+# at rest, at most `MAX_PUSHES` pushes, and `FEEDBACK_MAX_S` of simulated time in all.
+OBS_HZ = 30.0
+OBS_NOISE_M = 0.002
+REST_OBS = 15
+MAX_PUSHES = 4
+FEEDBACK_MAX_S = 30.0
 
 
 # --------------------------------------------------------------------------------------------
@@ -163,6 +175,42 @@ class Scene:
                 resting = float(np.max(np.abs(d.qvel))) < 1e-3
                 still = still + m.opt.timestep if resting else 0.0
                 if still >= 0.3 or t - released_at > SETTLE_MAX_S:
+                    break
+        return self.q(j), sorted(hit)
+
+    def execute_feedback(self, task, controller):
+        """Run `controller` (a `Feedback`) on the true object from its initial state: it observes
+        the handle point at `OBS_HZ` and commands a force at the handle, held at every physics
+        step. Ends when the controller is done and everything rests, or at `FEEDBACK_MAX_S`.
+        Returns (final q of the task's joint, what was hit)."""
+        self.reset()
+        rec = self.rec
+        m, d = rec.model, rec.data
+        j, _, _ = self.joint(task["joint"])
+        body = m.jnt_bodyid[j]
+        joints = [self.joint(n)[0] for n in self.spec.handles]
+        hit = set()
+        t, next_obs, still = 0.0, 0.0, 0.0
+        while t < FEEDBACK_MAX_S:
+            if t >= next_obs - 1e-9:
+                controller.observe(t, rec.handle_point(task["joint"]))
+                next_obs += 1.0 / OBS_HZ
+            d.qfrc_applied[:] = 0.0
+            f = controller.force(t)
+            if f is not None:
+                mujoco.mj_applyFT(m, d, np.asarray(f, float), np.zeros(3), rec.handle_point(task["joint"]), body, d.qfrc_applied)
+            mujoco.mj_step(m, d)
+            t += m.opt.timestep
+            for jj in joints:
+                lo, hi = m.jnt_range[jj]
+                qv = d.qpos[m.jnt_qposadr[jj]]
+                if qv < lo + 0.02 * (hi - lo) or qv > hi - 0.02 * (hi - lo):
+                    hit.add(f"stop of {mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, jj)}")
+            for a, b in rec.part_contacts():
+                hit.add(f"contact {rec.part_names[a - 1]}-{rec.part_names[b - 1]}")
+            if controller.done:
+                still = still + m.opt.timestep if float(np.max(np.abs(d.qvel))) < 1e-3 else 0.0
+                if still >= 0.3:
                     break
         return self.q(j), sorted(hit)
 
@@ -299,6 +347,92 @@ def force_along_plan(model, task, force, hold):
     return at
 
 
+class Feedback:
+    """The closed-loop command (`--control closed`): plan, push, look, push again. The first push
+    is the open-loop plan (`plan`, `force_along_plan`). Then the handle point is observed at
+    `OBS_HZ` with `OBS_NOISE_M` noise, and the part's coordinate in the model (angle about the
+    model's axis, or displacement along it) is read from it; once the part rests (over the last
+    `REST_OBS` observations, the means of the first and last thirds differ by less than a quarter
+    tolerance) and the model's coordinate
+    is short of the target by more than half the tolerance, the planner plans and executes a new
+    push, from the observed handle (the mean of those observations), for the displacement still
+    wanted, at most `MAX_PUSHES` pushes. An overshoot is final: a push cannot pull. The same for
+    bom's model and the oracle's; only the model differs."""
+
+    def __init__(self, model, task, seed, selection="robust"):
+        self.model, self.task, self.selection = model, task, selection
+        median = median_of(model)
+        self.kind = median["kind"]
+        self.rng = np.random.default_rng(seed)
+        self.want, self.tol = abs(task["target"] - task["q0"]), task["tol"]
+        _, sign = geometry(median, task)
+        self.sign = float(sign[0])
+        self.axis = median["direction"][0] / np.linalg.norm(median["direction"][0])
+        self.point = median["point"][0]
+        self.h0 = np.array(task["handle"], float)
+        self.obs = []
+        self.state, self.pushes, self.done, self.reason = "idle", 0, False, None
+        self.forces, self.holds = [], []
+
+    def _perp(self, h):
+        r = h - self.point
+        return r - self.axis * (r @ self.axis)
+
+    def coordinate(self, h):
+        """The model's joint coordinate of handle point `h` (rad or m, positive towards the target)."""
+        if self.kind == "revolute":
+            r0, r = self._perp(self.h0), self._perp(h)
+            return self.sign * math.atan2(float(self.axis @ np.cross(r0, r)), float(r0 @ r))
+        return self.sign * float(self.axis @ (h - self.h0))
+
+    def tangent(self, h):
+        """Unit direction the handle at `h` moves in towards the target, in the model."""
+        t = self.sign * (np.cross(self.axis, self._perp(h)) if self.kind == "revolute" else self.axis)
+        return t / max(np.linalg.norm(t), 1e-12)
+
+    def _start_push(self, t, h, q):
+        sub = self.task if self.pushes == 0 else dict(
+            self.task, handle=h.tolist(), hint=self.tangent(h).tolist(), q0=0.0, target=self.want - q)
+        chosen = plan(self.model, sub, self.selection)
+        if chosen is None:
+            self.done = True
+            if self.pushes == 0:
+                self.reason = "no push within the force and time limits reaches the target in the model"
+            return
+        self.command = force_along_plan(self.model, sub, chosen[0], chosen[1])
+        self.start, self.state = t, "push"
+        self.pushes += 1
+        self.forces.append(chosen[0])
+        self.holds.append(chosen[1])
+
+    def observe(self, t, handle):
+        if self.done:
+            return
+        h = np.asarray(handle, float) + self.rng.normal(0.0, OBS_NOISE_M, 3)
+        self.obs.append((t, self.coordinate(h), h))
+        if self.state == "idle":
+            self._start_push(t, self.h0, 0.0)
+        elif self.state == "wait" and len(self.obs) - self.waited >= REST_OBS:
+            last = self.obs[-REST_OBS:]
+            qs = [o[1] for o in last]
+            k = REST_OBS // 3
+            # at rest: the means of the first and last thirds of the observations (noise / sqrt(5)) agree
+            if abs(np.mean(qs[-k:]) - np.mean(qs[:k])) < 0.25 * self.tol:
+                q = float(np.mean(qs))
+                if self.want - q > 0.5 * self.tol and self.pushes < MAX_PUSHES:
+                    self._start_push(t, np.mean([o[2] for o in last], axis=0), q)
+                else:
+                    self.done = True
+
+    def force(self, t):
+        if self.state != "push":
+            return None
+        f = self.command(t - self.start, 0.0)
+        if f is None:
+            self.state, self.waited = "wait", len(self.obs)
+        return f
+
+
 # --------------------------------------------------------------------------------------------
 # bom's posterior as the planner's models
 # --------------------------------------------------------------------------------------------
@@ -389,7 +523,15 @@ def true_as_arrays(true):
 # --------------------------------------------------------------------------------------------
 
 
-def run_planner(scene, task, model, selection="robust"):
+def run_planner(scene, task, model, selection="robust", control="open", seed=0):
+    if control == "closed":
+        ctl = Feedback(model, task, seed, selection)
+        final, hit = scene.execute_feedback(task, ctl)
+        if ctl.pushes == 0:
+            return {"success": False, "reason": ctl.reason}
+        error = abs(final - task["target"])
+        return {"success": bool(error <= task["tol"] and not hit), "pushes": ctl.pushes, "forces_n": ctl.forces,
+                "holds_s": ctl.holds, "final_q": final, "error": error, "hit": hit}
     chosen = plan(model, task, selection)
     if chosen is None:
         return {"success": False, "reason": "no push within the force and time limits reaches the target in the model"}
@@ -418,7 +560,7 @@ def run_model_free(scene, task):
     return {"success": bool(error <= task["tol"] and not hit), "final_q": final, "error": error, "hit": hit}
 
 
-def evaluate(entry, model_json, draws, selection="robust"):
+def evaluate(entry, model_json, draws, selection="robust", control="open"):
     """All three planners on one corpus object (a manifest entry) with bom's summary."""
     scene = Scene(entry["seed_used"])
     task = scene.task()
@@ -427,8 +569,8 @@ def evaluate(entry, model_json, draws, selection="robust"):
     model, called = bom_model(summary, task, draws, entry["seed_used"])
     row["bom_called"] = called
     row["true_joint"] = task["kind"]
-    row["bom"] = run_planner(scene, task, model, selection) if model is not None else {"success": False, "reason": f"bom called the part {called}"}
-    row["oracle"] = run_planner(scene, task, true_as_arrays(scene.true_model(task)))
+    row["bom"] = run_planner(scene, task, model, selection, control, entry["seed_used"]) if model is not None else {"success": False, "reason": f"bom called the part {called}"}
+    row["oracle"] = run_planner(scene, task, true_as_arrays(scene.true_model(task)), "robust", control, entry["seed_used"])
     row["model_free"] = run_model_free(scene, task)
     return row
 
@@ -444,12 +586,12 @@ def fit(bom, bag, out, config):
 
 
 def job(args):
-    entry, corpus_dir, models, bom, config, draws, selection = args
+    entry, corpus_dir, models, bom, config, draws, selection, control = args
     out = Path(models) / f"{entry['name']}.json"
     try:
         if not out.exists():
             fit(bom, Path(corpus_dir) / entry["continuous"][0], out, config)
-        return evaluate(entry, out, draws, selection)
+        return evaluate(entry, out, draws, selection, control)
     except Exception as e:  # one object's failure is one line, the rest go on
         return {"name": entry["name"], "error": str(e)}
 
@@ -470,6 +612,8 @@ def main(argv=None):
     ap.add_argument("--min-interactions", type=int, default=2)
     ap.add_argument("--selection", default="robust", choices=["robust", "gentle"],
                     help="bom planner's choice among pushes: most draws within tolerance, or the least force within 0.1 of that")
+    ap.add_argument("--control", default="open", choices=["open", "closed"],
+                    help="execute each plan open loop, or closed loop on the observed handle (class Feedback)")
     ap.add_argument("--only", help="comma-separated object names")
     args = ap.parse_args(argv)
     manifest = json.loads((Path(args.corpus) / "manifest.json").read_text())["objects"]
@@ -477,7 +621,7 @@ def main(argv=None):
     entries = [o for o in manifest if (args.split == "all" or o["split"] == args.split)
                and o["interactions"] >= args.min_interactions and (only is None or o["name"] in only)]
     Path(args.models).mkdir(parents=True, exist_ok=True)
-    jobs = [(e, args.corpus, args.models, args.bom, args.config, args.draws, args.selection) for e in entries]
+    jobs = [(e, args.corpus, args.models, args.bom, args.config, args.draws, args.selection, args.control) for e in entries]
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as ex:
         rows = list(ex.map(job, jobs))
     scored = [r for r in rows if "error" not in r]
@@ -497,7 +641,7 @@ def main(argv=None):
     for p in PLANNERS:
         print(f"| {p} | {agg[p]:.3f} |" if agg[p] is not None else f"| {p} | - |")
     if args.json:
-        Path(args.json).write_text(json.dumps({"split": args.split, "scored": len(scored), "objects": len(rows),
+        Path(args.json).write_text(json.dumps({"split": args.split, "control": args.control, "scored": len(scored), "objects": len(rows),
                                                "success": agg, "rows": rows}, indent=1) + "\n")
 
 
