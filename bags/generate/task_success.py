@@ -141,39 +141,48 @@ class Scene:
                 "damping": np.array([m.dof_damping[dof]]), "friction": np.array([m.dof_frictionloss[dof]]),
                 "inertia": np.array([column[dof]])}
 
+    def _start(self, task):
+        """Reset to the initial state: (the task's joint id, its body, every handle's joint id,
+        an empty set of what was hit)."""
+        self.reset()
+        j, _, _ = self.joint(task["joint"])
+        return j, self.rec.model.jnt_bodyid[j], [self.joint(n)[0] for n in self.spec.handles], set()
+
+    def _step(self, jname, body, joints, f, hit):
+        """One physics step with world force `f` (or none) at joint `jname`'s handle on `body`;
+        adds to `hit` any of `joints` within 2% of its range of a stop and any two parts in contact."""
+        rec = self.rec
+        m, d = rec.model, rec.data
+        d.qfrc_applied[:] = 0.0
+        if f is not None:
+            mujoco.mj_applyFT(m, d, np.asarray(f, float), np.zeros(3), rec.handle_point(jname), body, d.qfrc_applied)
+        mujoco.mj_step(m, d)
+        for jj in joints:
+            lo, hi = m.jnt_range[jj]
+            qv = d.qpos[m.jnt_qposadr[jj]]
+            if qv < lo + 0.02 * (hi - lo) or qv > hi - 0.02 * (hi - lo):
+                hit.add(f"stop of {mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, jj)}")
+        for a, b in rec.part_contacts():
+            hit.add(f"contact {rec.part_names[a - 1]}-{rec.part_names[b - 1]}")
+
     def execute(self, task, force_at):
         """Apply `force_at(t, handle_velocity) -> world force or None (let go)` at the handle of
         the true object from its initial state; simulate until everything rests (at most
         `SETTLE_MAX_S` after letting go). Returns (final q of the task's joint, what was hit)."""
-        self.reset()
-        rec = self.rec
-        m, d = rec.model, rec.data
-        j, _, _ = self.joint(task["joint"])
-        body = m.jnt_bodyid[j]
-        joints = [self.joint(n)[0] for n in self.spec.handles]
-        hit = set()
+        rec, (m, d) = self.rec, (self.rec.model, self.rec.data)
+        j, body, joints, hit = self._start(task)
         t, released_at, still = 0.0, None, 0.0
         prev = rec.handle_point(task["joint"])
         speed = 0.0
         while True:
-            d.qfrc_applied[:] = 0.0
             f = force_at(t, speed) if released_at is None else None
             if f is None and released_at is None:
                 released_at = t
-            if f is not None:
-                mujoco.mj_applyFT(m, d, np.asarray(f, float), np.zeros(3), rec.handle_point(task["joint"]), body, d.qfrc_applied)
-            mujoco.mj_step(m, d)
+            self._step(task["joint"], body, joints, f, hit)
             t += m.opt.timestep
             h = rec.handle_point(task["joint"])
             speed = float(np.linalg.norm(h - prev)) / m.opt.timestep
             prev = h
-            for jj in joints:
-                lo, hi = m.jnt_range[jj]
-                qv = d.qpos[m.jnt_qposadr[jj]]
-                if qv < lo + 0.02 * (hi - lo) or qv > hi - 0.02 * (hi - lo):
-                    hit.add(f"stop of {mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, jj)}")
-            for a, b in rec.part_contacts():
-                hit.add(f"contact {rec.part_names[a - 1]}-{rec.part_names[b - 1]}")
             if released_at is not None:
                 resting = float(np.max(np.abs(d.qvel))) < 1e-3
                 still = still + m.opt.timestep if resting else 0.0
@@ -186,31 +195,15 @@ class Scene:
         the handle point at `OBS_HZ` and commands a force at the handle, held at every physics
         step. Ends when the controller is done and everything rests, or at `FEEDBACK_MAX_S`.
         Returns (final q of the task's joint, what was hit)."""
-        self.reset()
-        rec = self.rec
-        m, d = rec.model, rec.data
-        j, _, _ = self.joint(task["joint"])
-        body = m.jnt_bodyid[j]
-        joints = [self.joint(n)[0] for n in self.spec.handles]
-        hit = set()
+        rec, (m, d) = self.rec, (self.rec.model, self.rec.data)
+        j, body, joints, hit = self._start(task)
         t, next_obs, still = 0.0, 0.0, 0.0
         while t < FEEDBACK_MAX_S:
             if t >= next_obs - 1e-9:
                 controller.observe(t, rec.handle_point(task["joint"]))
                 next_obs += 1.0 / OBS_HZ
-            d.qfrc_applied[:] = 0.0
-            f = controller.force(t)
-            if f is not None:
-                mujoco.mj_applyFT(m, d, np.asarray(f, float), np.zeros(3), rec.handle_point(task["joint"]), body, d.qfrc_applied)
-            mujoco.mj_step(m, d)
+            self._step(task["joint"], body, joints, controller.force(t), hit)
             t += m.opt.timestep
-            for jj in joints:
-                lo, hi = m.jnt_range[jj]
-                qv = d.qpos[m.jnt_qposadr[jj]]
-                if qv < lo + 0.02 * (hi - lo) or qv > hi - 0.02 * (hi - lo):
-                    hit.add(f"stop of {mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, jj)}")
-            for a, b in rec.part_contacts():
-                hit.add(f"contact {rec.part_names[a - 1]}-{rec.part_names[b - 1]}")
             if controller.done:
                 still = still + m.opt.timestep if float(np.max(np.abs(d.qvel))) < 1e-3 else 0.0
                 if still >= 0.3:
