@@ -20,6 +20,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+import numpy as np
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 REPO = Path(__file__).resolve().parents[2]
 BAG = REPO / "bags/corpus/obj075_procedural.mcap"
@@ -66,11 +68,24 @@ def main():
         r = row[p]
         print(f"{p:10s} success {r['success']} error {k * r.get('error', math.nan):.2f} {unit} hit {r.get('hit')} "
               f"force {r.get('force_n')} hold {r.get('hold_s')} P(model) {r.get('p_success_model')}")
+    # The closed loop reads the part's coordinate through its model: the handle turned by 0.3 rad
+    # towards the target about the true axis reads 0.3 in the true model, and its direction of
+    # motion at the start is the recorder's push towards the target.
+    true = ts.true_as_arrays(scene.true_model(task))
+    ctl = ts.Feedback(true, task, SEED)
+    h0 = np.array(task["handle"])
+    turned = true["point"][0] + ts.rotate(h0 - true["point"][0], true["direction"][0], np.array(0.3 * ctl.sign))
+    read = ctl.coordinate(turned)
+    print(f"coordinate of the handle turned by 0.3 rad towards the target: {read:.4f}")
     for p in ("bom", "oracle"):
         r = closed[p]
         print(f"{p:10s} closed loop: success {r['success']} error {k * r.get('error', math.nan):.2f} {unit} "
               f"pushes {r.get('pushes')} forces {r.get('forces_n')}")
     failures = []
+    if abs(read - 0.3) > 1e-6:
+        failures.append(f"the closed loop reads a 0.3 rad turn as {read:.4f}")
+    if not ctl.tangent(h0) @ np.array(task["hint"]) > 0.9:
+        failures.append("the closed loop's direction of motion at the start does not point towards the target")
     if not closed["oracle"]["success"]:
         failures.append("closed loop, the planner with the true parameters missed the target")
     if not closed["bom"]["success"]:
