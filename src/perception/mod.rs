@@ -333,22 +333,23 @@ fn split_parts(cloud: &CloudFrame, cfg: &PerceptionConfig) -> Vec<SplitPart> {
         .into_iter()
         .filter(|(_, pts)| pts.len() >= cfg.min_points)
         .map(|(label, points)| {
-            let own = viewpoint.map(|_| {
-                let mut t: KdTree<f64, 3> = KdTree::new();
+            // With a viewpoint, the part's own points in a tree of their own, for its local surface.
+            let seen_from = viewpoint.map(|v| {
+                let mut own: KdTree<f64, 3> = KdTree::new();
                 for (i, p) in points.iter().enumerate() {
-                    t.add(&[p.x, p.y, p.z], i as u64);
+                    own.add(&[p.x, p.y, p.z], i as u64);
                 }
-                t
+                (v, own)
             });
             let weights = points
                 .iter()
                 .map(|p| {
                     let near = all.within_unsorted::<SquaredEuclidean>(&[p.x, p.y, p.z], r2);
-                    let mut others = near.iter().map(|n| flat[n.item as usize]).filter(|(_, l)| *l != label).map(|(q, _)| q).peekable();
-                    match (others.peek().is_none(), viewpoint, own.as_ref()) {
-                        (true, _, _) => 1.0,
-                        (false, Some(v), Some(own)) => outline_weight(p, &others.collect::<Vec<_>>(), &points, own, &v, cfg),
-                        _ => cfg.boundary_weight,
+                    let others: Vec<Vector3<f64>> = near.iter().map(|n| flat[n.item as usize]).filter(|(_, l)| *l != label).map(|(q, _)| q).collect();
+                    match &seen_from {
+                        _ if others.is_empty() => 1.0,
+                        Some((v, own)) => outline_weight(p, &others, &points, own, v, cfg),
+                        None => cfg.boundary_weight,
                     }
                 })
                 .collect();
