@@ -56,6 +56,11 @@ pub struct PerceptionConfig {
     pub registration_cov_scale: f64,
     /// Model resolution: one model point per voxel of this size \[m\].
     pub voxel_m: f64,
+    /// Each new model point is projected once onto the robust least-squares plane of the model
+    /// points within this radius \[m\] when it is an inlier of it (moving least squares, see
+    /// [`registration::Smoothing`]). 0 (the default): off; measured on the corpus, README
+    /// "Generalization".
+    pub smoothing_radius_m: f64,
     /// Range of the point-to-plane scale of the Cauchy kernel, which is estimated per frame from
     /// the residuals (the depth noise) \[m\].
     pub point_sd_min_m: f64,
@@ -106,6 +111,7 @@ impl Default for PerceptionConfig {
             orientation_min_ratio: 1.3,
             registration_cov_scale: 4.0,
             voxel_m: 0.008,
+            smoothing_radius_m: 0.0,
             point_sd_min_m: 0.0005,
             point_sd_max_m: 0.02,
             point_to_point_weight: 0.3,

@@ -52,6 +52,37 @@ pub fn skew(v: &Vector3<f64>) -> Matrix3<f64> {
     Matrix3::new(0.0, -v.z, v.y, v.z, 0.0, -v.x, -v.y, v.x, 0.0)
 }
 
+/// The dominant plane of `pts` (a smoothing neighbourhood, [`Smoothing`]): unit normal, a point on
+/// it and the inlier distance \[m\], or None when fewer than [`SMOOTHING_MIN_NEIGHBOURS`] points
+/// or not most of them lie on one plane, or the inliers are not planar (surface variation
+/// [`PLANAR_MAX`] or more). The distance's floor, a tenth of a voxel, keeps an exact
+/// plane (simulated, noise-free) from rejecting its own rounding.
+fn robust_plane(pts: &[Vector3<f64>], voxel: f64) -> Option<(Vector3<f64>, Vector3<f64>, f64)> {
+    if pts.len() < SMOOTHING_MIN_NEIGHBOURS {
+        return None;
+    }
+    let mut inliers: Vec<Vector3<f64>> = pts.to_vec();
+    let (mut n, mut c, mut tol) = (Vector3::z(), Vector3::zeros(), 0.0);
+    for _ in 0..SMOOTHING_ITERATIONS {
+        if inliers.len() < SMOOTHING_MIN_NEIGHBOURS || 2 * inliers.len() <= pts.len() {
+            return None;
+        }
+        let (normal, variation) = normal_of(&inliers);
+        // The registration's own test of a plane (as for a normal): a curved patch (a handle, a
+        // knob) is not flattened.
+        if variation >= PLANAR_MAX {
+            return None;
+        }
+        n = normal;
+        c = inliers.iter().sum::<Vector3<f64>>() / inliers.len() as f64;
+        let mut dist: Vec<f64> = pts.iter().map(|q| n.dot(&(q - c)).abs()).collect();
+        dist.sort_by(f64::total_cmp);
+        tol = (SMOOTHING_TRIM * 1.4826 * dist[dist.len() / 2]).max(0.1 * voxel);
+        inliers = pts.iter().filter(|q| n.dot(&(*q - c)).abs() <= tol).copied().collect();
+    }
+    (inliers.len() >= SMOOTHING_MIN_NEIGHBOURS && 2 * inliers.len() > pts.len()).then_some((n, c, tol))
+}
+
 fn voxel_key(y: &Vector3<f64>, voxel: f64) -> [i64; 3] {
     [(y.x / voxel).floor() as i64, (y.y / voxel).floor() as i64, (y.z / voxel).floor() as i64]
 }
@@ -74,8 +105,39 @@ pub struct PartModel {
     candidates: HashMap<[i64; 3], Candidate>,
     /// Model size when every normal was last recomputed.
     refreshed_at: usize,
+    /// Points before this index have had their one smoothing step ([`PartModel::smooth`]).
+    smoothed: usize,
     voxel: f64,
+    smoothing: Smoothing,
 }
+
+/// Moving-least-squares smoothing of a part model (Alexa et al. 2003, "Computing and rendering
+/// point set surfaces", IEEE TVCG 9(1), the projection's first step, with a robust plane): each
+/// point is projected once onto the plane of the model points within `radius_m` of it, fitted by
+/// least squares on the points within `SMOOTHING_TRIM` (2.5) robust standard deviations of it
+/// (iterated), and only when the point itself lies within them and the plane holds most of the
+/// neighbourhood, and its inliers pass the registration's plane test (surface variation below
+/// `PLANAR_MAX`, as for a normal). A point on another surface — the rim of a thin plate, the far
+/// face at an edge, a corner — is an outlier of that plane and stays where it was seen, so the
+/// features that fix a part's position in its own plane are kept; a curved patch smaller than the
+/// radius (a handle) is not flattened.
+///
+/// Why: a model point is the mean of the few noisy depth samples that confirmed its voxel, so a
+/// flat panel seen from afar becomes a slab as thick as the depth noise (8-14 mm rms at 1.6 m in
+/// the corpus), and registration against a slab lets the panel slide and tilt within it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Smoothing {
+    /// Neighbourhood radius \[m\]; 0 turns smoothing off.
+    pub radius_m: f64,
+}
+
+/// Inliers of a smoothing plane lie within this many robust standard deviations (1.4826 x the
+/// median absolute distance) of it.
+const SMOOTHING_TRIM: f64 = 2.5;
+/// Plane-fit iterations (each refits on the previous fit's inliers).
+const SMOOTHING_ITERATIONS: usize = 3;
+/// Fewest neighbours for a smoothing plane.
+const SMOOTHING_MIN_NEIGHBOURS: usize = 8;
 
 impl std::fmt::Debug for PartModel {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -84,8 +146,9 @@ impl std::fmt::Debug for PartModel {
 }
 
 impl PartModel {
-    /// A model from a first set of points (already free of strays), one point per voxel.
-    pub fn new(points: &[Vector3<f64>], voxel: f64) -> PartModel {
+    /// A model from a first set of points (already free of strays, fixed frame \[m\]), one point
+    /// per voxel of size `voxel` \[m\].
+    pub fn new(points: &[Vector3<f64>], voxel: f64, smoothing: Smoothing) -> PartModel {
         let mut m = PartModel {
             points: Vec::new(),
             normals: Vec::new(),
@@ -93,7 +156,9 @@ impl PartModel {
             occupied: Default::default(),
             candidates: HashMap::new(),
             refreshed_at: 0,
+            smoothed: 0,
             voxel,
+            smoothing,
         };
         for p in points {
             m.insert(*p);
@@ -135,10 +200,42 @@ impl PartModel {
     }
 
     fn refresh_normals(&mut self) {
+        self.smooth();
         for i in 0..self.points.len() {
             self.normals[i] = self.compute_normal(i);
         }
         self.refreshed_at = self.points.len();
+    }
+
+    /// Project the points added since the last call onto their neighbourhood's least-squares
+    /// plane ([`Smoothing`]), once each: a point projected again and again would drift with its
+    /// already-projected neighbours.
+    fn smooth(&mut self) {
+        let r = self.smoothing.radius_m;
+        if r <= 0.0 {
+            self.smoothed = self.points.len();
+            return;
+        }
+        let moved: Vec<(usize, Vector3<f64>)> = (self.smoothed..self.points.len())
+            .filter_map(|i| {
+                let p = self.points[i];
+                let nb: Vec<Vector3<f64>> =
+                    self.tree.within_unsorted::<SquaredEuclidean>(&[p.x, p.y, p.z], r * r).iter().map(|n| self.points[n.item as usize]).collect();
+                robust_plane(&nb, self.voxel).and_then(|(n, c, tol)| {
+                    let d = n.dot(&(p - c));
+                    (d.abs() <= tol).then(|| p - n * d)
+                })
+                .map(|q| (i, q))
+            })
+            .collect();
+        // Moved after all are computed, so that the order of the points does not matter.
+        for (i, q) in moved {
+            let p = self.points[i];
+            self.tree.remove(&[p.x, p.y, p.z], i as u64);
+            self.tree.add(&[q.x, q.y, q.z], i as u64);
+            self.points[i] = q;
+        }
+        self.smoothed = self.points.len();
     }
 
     /// Nearest model point to `y` within `gate` \[m\]: its index and squared distance.
@@ -520,7 +617,7 @@ impl Tracker {
     /// is the part's pose at this frame.
     pub fn new(points: &[Vector3<f64>], cfg: &PerceptionConfig) -> Tracker {
         Tracker {
-            model: PartModel::new(points, cfg.voxel_m),
+            model: PartModel::new(points, cfg.voxel_m, Smoothing { radius_m: cfg.smoothing_radius_m }),
             pose: Isometry3::identity(),
             previous: Isometry3::identity(),
             frames: 1,
@@ -654,7 +751,7 @@ mod tests {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
         for n_model in [3, 400] {
             let size = Vector3::new(0.4, 0.25, 0.1);
-            let model = PartModel::new(&box_surface(&mut rng, n_model, size), 0.008);
+            let model = PartModel::new(&box_surface(&mut rng, n_model, size), 0.008, Smoothing { radius_m: 0.0 });
             let frame = box_surface(&mut rng, 200, size);
             let mut nn = Correspondences::new(&model, frame.len());
             let mut asked = 0;
@@ -724,5 +821,47 @@ mod tests {
         }
         assert!(worst < 0.01, "centre error {worst} m");
         assert!(tr.model.points.len() > 150, "the model grew: {}", tr.model.points.len());
+    }
+
+    /// Smoothing thins a noisy plate to its plane and leaves what is not that plane alone: a lip
+    /// standing on the plate's edge (which fixes the plate's position in its own plane) and a
+    /// handle (a cylinder narrower than the smoothing radius).
+    #[test]
+    fn smoothing_thins_a_noisy_plate_and_keeps_its_lip_and_handle() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        let noise = rand_distr::Normal::new(0.0, 0.004).unwrap();
+        let mut pts = Vec::new();
+        for _ in 0..6000 {
+            // Plate z = 0, 0.4 x 0.3 m; lip x = 0.2, 4 cm high; handle: radius 1.5 cm about the
+            // line (y = 0, z = 0.1), x in [-0.1, 0.1].
+            let (x, y) = (rng.random_range(-0.2..0.2), rng.random_range(-0.15..0.15));
+            let z = rng.sample(noise);
+            pts.push(Vector3::new(x, y, z));
+        }
+        for _ in 0..1500 {
+            pts.push(Vector3::new(0.2 + 0.001 * rng.sample(noise), rng.random_range(-0.15..0.15), rng.random_range(0.0..0.04)));
+            let a: f64 = rng.random_range(0.0..std::f64::consts::TAU);
+            pts.push(Vector3::new(rng.random_range(-0.1..0.1), 0.015 * a.cos(), 0.1 + 0.015 * a.sin()));
+        }
+        let off = |m: &PartModel| {
+            let plate: Vec<f64> = m.points.iter().filter(|p| p.x.abs() < 0.15 && p.z.abs() < 0.03).map(|p| p.z * p.z).collect();
+            (plate.iter().sum::<f64>() / plate.len() as f64).sqrt()
+        };
+        let lip = |m: &PartModel| m.points.iter().filter(|p| p.x > 0.19 && p.z > 0.025).count();
+        let handle = |m: &PartModel| {
+            let r: Vec<f64> = m.points.iter().filter(|p| p.z > 0.07).map(|p| ((p.y.powi(2) + (p.z - 0.1).powi(2)).sqrt() - 0.015).powi(2)).collect();
+            (r.iter().sum::<f64>() / r.len() as f64).sqrt()
+        };
+        let raw = PartModel::new(&pts, 0.008, Smoothing { radius_m: 0.0 });
+        let smooth = PartModel::new(&pts, 0.008, Smoothing { radius_m: 0.032 });
+        assert_eq!(raw.points.len(), smooth.points.len());
+        assert!(off(&smooth) < 0.5 * off(&raw), "plate off its plane: {:.4} m smoothed, {:.4} m raw", off(&smooth), off(&raw));
+        assert!(lip(&raw) > 20 && lip(&smooth) >= lip(&raw) * 9 / 10, "lip points above 2.5 cm: {} smoothed, {} raw", lip(&smooth), lip(&raw));
+        assert!(handle(&smooth) < 0.002, "handle off its cylinder: {:.4} m (raw {:.4} m)", handle(&smooth), handle(&raw));
+        // Smoothing is done once per point: a second refresh moves nothing.
+        let mut again = PartModel::new(&pts, 0.008, Smoothing { radius_m: 0.032 });
+        let before = again.points.clone();
+        again.refresh_normals();
+        assert_eq!(before, again.points);
     }
 }
