@@ -174,8 +174,7 @@ impl Predictor {
 
     /// Poses for the cloud at `stamp`, one per part in the posterior's order, or `None` when
     /// there is no state to predict from (the first cloud, a part not seen yet, a cloud stamped
-    /// before the previous one: after a clock reset, or after an outlier stamp that input
-    /// validation could only tell from the message after it).
+    /// before the previous one, as after a clock reset).
     fn predict(&mut self, stamp: f64, on: &Online, cfg: &Config) -> Option<Vec<Isometry3<f64>>> {
         let prev = self.prev.replace(stamp)?;
         if stamp + cfg.prediction.look_ahead_s < prev {
