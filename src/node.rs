@@ -177,17 +177,16 @@ impl Predictor {
     /// before the previous one, as after a clock reset).
     fn predict(&mut self, stamp: f64, on: &Online, cfg: &Config) -> Option<Vec<Isometry3<f64>>> {
         let prev = self.prev.replace(stamp)?;
-        if stamp + cfg.prediction.look_ahead_s < prev {
-            // The prediction would start after the stamp it is asked for (it returns no stamp).
-            tracing::debug!("no predicted part poses at {stamp:.3} s: the previous cloud is later ({prev:.3} s)");
-            return None;
-        }
         let pushes = on.pushes();
         let scene = Scene { tracks: on.tracks(), geometry: &self.geometry, wrenches: on.wrenches(), windows: &pushes };
         let pcfg = PredictConfig { draws: 0, ..cfg.prediction };
         match crate::prediction::predict(&self.model, &scene, prev, &[stamp + cfg.prediction.look_ahead_s], &pcfg, &cfg.model) {
             Ok(p) if !p.stamps.is_empty() => Some(p.poses(0)),
-            Ok(_) => None,
+            // Prediction keeps only stamps from the state's on: this cloud is before the previous one.
+            Ok(_) => {
+                tracing::debug!("no predicted part poses at {stamp:.3} s: the previous cloud is later ({prev:.3} s)");
+                None
+            }
             Err(e) => {
                 tracing::debug!("no predicted part poses at {stamp:.3} s: {e}");
                 None

@@ -75,9 +75,7 @@ fn robust_plane(pts: &[Vector3<f64>], voxel: f64) -> Option<(Vector3<f64>, Vecto
         }
         n = normal;
         c = inliers.iter().sum::<Vector3<f64>>() / inliers.len() as f64;
-        let mut dist: Vec<f64> = pts.iter().map(|q| n.dot(&(q - c)).abs()).collect();
-        dist.sort_by(f64::total_cmp);
-        tol = (SMOOTHING_TRIM * 1.4826 * dist[dist.len() / 2]).max(0.1 * voxel);
+        tol = (SMOOTHING_TRIM * robust_sd(pts.iter().map(|q| n.dot(&(q - c)).abs()).collect())).max(0.1 * voxel);
         inliers = pts.iter().filter(|q| n.dot(&(*q - c)).abs() <= tol).copied().collect();
     }
     (inliers.len() >= SMOOTHING_MIN_NEIGHBOURS && 2 * inliers.len() > pts.len()).then_some((n, c, tol))
@@ -570,7 +568,7 @@ impl NormalEquations {
 fn residual_scale(nn: &mut Correspondences<'_>, frame: &FramePoints<'_>, pose: &Isometry3<f64>, cfg: &PerceptionConfig) -> Option<f64> {
     let model = nn.model;
     let inv = pose.inverse();
-    let mut r: Vec<f64> = frame
+    let r: Vec<f64> = frame
         .points
         .iter()
         .enumerate()
@@ -586,8 +584,14 @@ fn residual_scale(nn: &mut Correspondences<'_>, frame: &FramePoints<'_>, pose: &
     if r.len() < cfg.min_points.max(6) {
         return None;
     }
-    r.sort_by(|a, b| a.total_cmp(b));
-    Some(1.4826 * r[r.len() / 2])
+    Some(robust_sd(r))
+}
+
+/// Robust standard deviation of absolute residuals `r` (not empty): 1.4826 x their (upper)
+/// median, the normal distribution's sd from its median absolute deviation.
+fn robust_sd(mut r: Vec<f64>) -> f64 {
+    r.sort_by(f64::total_cmp);
+    1.4826 * r[r.len() / 2]
 }
 
 /// The result of registering one frame.
