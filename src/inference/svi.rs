@@ -57,7 +57,7 @@ use super::summary::{self, softmax};
 use super::Posterior;
 use crate::model::density::{block_pass, inverse, part_transforms, physics_prior, pre_transforms, subtree_members, PartValue};
 use crate::model::dynamics;
-use crate::model::likelihood::{coordinate_prior, log_likelihood_position, log_likelihood_rotation, Evidence};
+use crate::model::likelihood::{coordinate_prior, log_likelihood_position, log_likelihood_rotation, window_start_prior, Evidence};
 use crate::model::{decode, displacement, tree, Displacement, JointParams, JointType, ModelConfig};
 
 
@@ -95,6 +95,15 @@ pub struct SviConfig {
     pub tol_rel: f64,
     pub min_discrete_iters: usize,
     pub tol_prob: f64,
+    /// Phase 2 also waits until each part's conditional ELBOs have settled: over the last
+    /// `check_every` iterations the mean gap between its best joint type and each other type
+    /// within `discrete_floor_nats` of it moved by less than this \[nats\] (or than twice the
+    /// Monte Carlo error of the two means; 0: not checked). Why: the type probabilities saturate
+    /// (P = 1.00) within a few dozen iterations, while a movable type's block (its axis, its
+    /// coordinates in every frame) is still climbing towards its optimum and the rigid block, with
+    /// no coordinates, has long reached its own; stopping on the probabilities alone decided
+    /// close calls for the type that converges first.
+    pub tol_type_nats: f64,
     /// Iterations at the end with the learning rate scaled by `final_lr_scale`, over which the
     /// guide's parameters are averaged (Polyak) for the reported posterior.
     pub final_iters: usize,
@@ -162,6 +171,7 @@ impl Default for SviConfig {
             tol_rel: 2e-4,
             min_discrete_iters: 100,
             tol_prob: 0.02,
+            tol_type_nats: 0.0,
             final_iters: 100,
             final_lr_scale: 0.3,
             lr_global: 0.03,
@@ -795,6 +805,10 @@ fn fit_from(
     let mut block: Vec<f64> = Vec::with_capacity(cfg.check_every);
     let mut last_block: Option<(f64, f64)> = None;
     let mut last_logits: Option<Vec<f64>> = None;
+    // Per part and type: this block's sums of the conditional ELBO and of its square, and the
+    // previous block's gaps to the part's best type with their standard errors.
+    let mut type_block = vec![[(0.0f64, 0.0f64); 3]; n];
+    let mut last_gaps: Option<Vec<[(f64, f64); 3]>> = None;
     let mut final_left: Option<usize> = None;
     let mut f_avg = vec![[0.0f64; 3]; n];
     // The final phase's conditional ELBOs split into (likelihood, analytic terms, physics prior),
@@ -846,7 +860,6 @@ fn fit_from(
                         // Dynamic mode: the start of the first window and of every window that
                         // does not continue the previous one (later ones follow by continuity,
                         // the rest by the physics prior).
-                        let var = model.window_start_sd_m.powi(2);
                         let starts = std::iter::once(0).chain(ev.windows.iter().filter(|w| !w.continues).map(|w| w.frames[0]));
                         let mut done = Vec::new();
                         for f in starts {
@@ -855,9 +868,10 @@ fn fit_from(
                             }
                             done.push(f);
                             let (m0, s0) = (theta[qm + f], theta[qs + f].exp());
-                            a += -(m0 * m0 + s0 * s0) / (2.0 * var) - 0.5 * (var * 2.0 * std::f64::consts::PI).ln();
-                            grad[qm + f] -= m0 / var;
-                            grad[qs + f] -= s0 * s0 / var;
+                            let (l, dm, ds) = window_start_prior(m0, s0, model);
+                            a += l;
+                            grad[qm + f] += dm;
+                            grad[qs + f] += ds * s0;
                         }
                     }
                     // Entropy of the coordinates' guide.
@@ -1003,6 +1017,12 @@ fn fit_from(
             block_elbo += (0..3).map(|k| qt[k] * f_type[i][k]).sum::<f64>();
         }
         block.push(block_elbo);
+        for i in 0..n {
+            for k in 0..3 {
+                type_block[i][k].0 += f_type[i][k];
+                type_block[i][k].1 += f_type[i][k] * f_type[i][k];
+            }
+        }
 
         // Continuous parameters: Adam.
         let scale = if final_left.is_some() { cfg.final_lr_scale } else { 1.0 };
@@ -1054,6 +1074,20 @@ fn fit_from(
                     let mean = block.iter().sum::<f64>() / k;
                     let se = (block.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (k - 1.0).max(1.0) / k).sqrt();
                     block.clear();
+                    // Gap of each type's block-mean conditional ELBO below the part's best type's,
+                    // with the standard error of that mean.
+                    let gaps: Vec<[(f64, f64); 3]> = type_block
+                        .iter()
+                        .map(|t| {
+                            let stats = t.map(|(s1, s2)| {
+                                let mean = s1 / k;
+                                (mean, ((s2 / k - mean * mean).max(0.0) / (k - 1.0).max(1.0)).sqrt())
+                            });
+                            let best = stats.iter().map(|x| x.0).fold(f64::NEG_INFINITY, f64::max);
+                            stats.map(|(mean, se)| (best - mean, se))
+                        })
+                        .collect();
+                    type_block = vec![[(0.0, 0.0); 3]; n];
                     tracing::trace!("iteration {iters} phase {phase}: mean ELBO {mean:.1} (se {se:.2})");
                     // The discrete guide's probabilities (types, and parents among the candidates).
                     let logits: Vec<f64> = (0..n)
@@ -1074,13 +1108,21 @@ fn fit_from(
                         }
                     } else {
                         let settled = matches!(&last_logits, Some(prev) if prev.iter().zip(&logits).all(|(a, b)| (a - b).abs() < cfg.tol_prob));
-                        if settled && discrete_iters >= cfg.min_discrete_iters {
+                        let types_settled = cfg.tol_type_nats <= 0.0
+                            || matches!(&last_gaps, Some(prev) if prev.iter().zip(&gaps).all(|(p, g)| {
+                                (0..3).all(|t| {
+                                    let ((g0, s0), (g1, s1)) = (p[t], g[t]);
+                                    g1 > cfg.discrete_floor_nats || (g1 - g0).abs() < cfg.tol_type_nats.max(2.0 * (s0 * s0 + s1 * s1).sqrt())
+                                })
+                            }));
+                        if settled && types_settled && discrete_iters >= cfg.min_discrete_iters {
                             tracing::debug!("phase 3 from iteration {iters}");
                             final_left = Some(cfg.final_iters.max(1));
                         }
                     }
                     last_block = Some((mean, se));
                     last_logits = Some(logits);
+                    last_gaps = Some(gaps);
                 }
                 if iters >= cfg.max_iters {
                     final_left = Some(cfg.final_iters.max(1));

@@ -13,7 +13,7 @@
 //!   kinematic mode, the coordinates' velocity scale;
 //! - the prior of the joint coordinates: kinematic mode, the random walk of
 //!   [`crate::model::likelihood::coordinate_prior`]; dynamic mode, window starts
-//!   `N(0, window_start_sd_m^2)`, the physics prior of each window made robust to windows it
+//!   ([`crate::model::likelihood::window_start_prior`]: reset or anywhere), the physics prior of each window made robust to windows it
 //!   cannot explain, and the rests between and after windows ([`physics_prior`]).
 //!
 //! The latents are unconstrained already: the priors are defined on the standardised
@@ -35,7 +35,7 @@ use num_dual::DualSVec64;
 
 use crate::model::dynamics::{self, JointInWindow, SubtreeBody};
 use crate::model::effects::EffectSet;
-use crate::model::likelihood::{coordinate_prior, log_likelihood_position, log_likelihood_rotation, Evidence, WindowEvidence};
+use crate::model::likelihood::{coordinate_prior, log_likelihood_position, log_likelihood_rotation, window_start_prior, Evidence, WindowEvidence};
 use crate::model::{decode, displacement, mat_mul, tree, Displacement, JointParams, JointType, ModelConfig};
 
 /// Dual number with enough directions for the largest joint (11 parameters) plus one coordinate.
@@ -445,10 +445,10 @@ impl<'a> Density<'a> {
                     lp -= 0.5 * x[j] * x[j];
                     grad[j] -= x[j];
                 }
-                let var = model.window_start_sd_m.powi(2);
                 for f in window_starts(ev) {
-                    lp += -x[o + f] * x[o + f] / (2.0 * var) - 0.5 * (var * 2.0 * std::f64::consts::PI).ln();
-                    grad[o + f] -= x[o + f] / var;
+                    let (l, dm, _) = window_start_prior(x[o + f], 0.0, model);
+                    lp += l;
+                    grad[o + f] += dm;
                 }
             }
         }

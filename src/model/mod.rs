@@ -110,8 +110,16 @@ pub struct ModelConfig {
     /// on joint coordinates (kinematic mode) [m/s of centre-of-mass path].
     pub velocity_sd_mps: f64,
     pub velocity_log_sd: f64,
-    /// Prior sd of the first joint coordinate of every window after the first \[m\].
+    /// Prior sd of the joint coordinate at a window start that no continuity ties to an earlier
+    /// frame (the first frame, a new episode; kinematic mode: every window) when the joint may be
+    /// anywhere \[m\] (the broad component of [`likelihood::window_start_prior`]).
     pub window_start_sd_m: f64,
+    /// Prior probability that the joint is at its reference configuration at such a start: the
+    /// object was reset between episodes, or the start is the first frame (0 is the part's first
+    /// observation by construction). 0: the broad component alone.
+    pub window_reset_prob: f64,
+    /// Spread of the joint coordinate around the reference configuration at a reset start \[m\].
+    pub window_reset_sd_m: f64,
     /// Minimum effective radius of a revolute joint, so `angle = path / radius` stays finite \[m\].
     pub min_radius_m: f64,
     /// Prior probabilities of rigid, prismatic, revolute.
@@ -137,6 +145,8 @@ impl Default for ModelConfig {
             velocity_sd_mps: 0.5,
             velocity_log_sd: 1.5,
             window_start_sd_m: 1.0,
+            window_reset_prob: 0.0,
+            window_reset_sd_m: 0.01,
             min_radius_m: 0.02,
             type_prior: [1.0 / 3.0; 3],
             contact_world_m2: 0.0002,
