@@ -436,19 +436,22 @@ pub fn log_likelihood_rotation<T: Real>(o: &RotationObs, r: &Matrix3<T>, sigma_r
 /// `s_r = window_reset_sd_m`, `s_b = window_start_sd_m`. Returns the value and its derivatives
 /// with respect to `m` and `s` (`s = 0`: the log density at `m`).
 ///
-/// The value is the mixture's ELBO with the component as a discrete latent at its optimal
-/// posterior, `log sum_c exp(log pi_c + E_q[log N_c(q)])` (a lower bound of `E_q[log p(q)]`'s
-/// evidence contribution, exact when `s = 0`).
+/// The value is `log sum_c exp(log pi_c + E_q[log N_c(q)])`: the component taken as a discrete
+/// latent with its posterior at the optimum, a lower bound of `E_q[log p(q)]` (Jensen), so the
+/// ELBO stays a bound; exact when `s = 0`. `window_reset_prob` is clamped to `[0, 1]`; at 0 (the
+/// default) this is the broad Gaussian alone, bit for bit.
 ///
 /// Why: 0 is the part's reference configuration, its first observation, so the first frame is
 /// there by construction, and interaction datasets reset the object between episodes (issue 24,
-/// class 2). With the broad prior alone every such start cost a movable joint type about
+/// class 2). With the broad prior alone every such start costs a movable joint type about
 /// `log(s_b / s)` nats (7 for a 1 mm guide against 1 m) that the rigid type does not pay: an
-/// object recorded in 6 episodes charged each movable part some 40 nats, and parts that moved in
-/// one episode of several came out rigid with P = 1.00.
+/// object recorded in 6 episodes charges each movable part some 40 nats. Measured on the corpus
+/// with `inference.tol_type_nats` (README, "Why movable parts come out
+/// rigid at P = 1.00"): off by default for now.
 pub fn window_start_prior(m: f64, s: f64, cfg: &ModelConfig) -> (f64, f64, f64) {
     let ln2pi = (2.0 * std::f64::consts::PI).ln();
-    let comps = [(cfg.window_reset_prob, cfg.window_reset_sd_m), (1.0 - cfg.window_reset_prob, cfg.window_start_sd_m)];
+    let p = cfg.window_reset_prob.clamp(0.0, 1.0);
+    let comps = [(p, cfg.window_reset_sd_m), (1.0 - p, cfg.window_start_sd_m)];
     let e: Vec<f64> = comps
         .iter()
         .map(|&(p, sd)| {
