@@ -55,7 +55,7 @@ use super::laplace;
 use super::structure;
 use super::summary::{self, softmax};
 use super::Posterior;
-use crate::model::density::{block_pass, inverse, part_transforms, physics_prior, pre_transforms, subtree_members, PartValue};
+use crate::model::density::{block_pass, inverse, part_transforms, physics_prior, pre_transforms, subtree_members, window_starts, PartValue};
 use crate::model::dynamics;
 use crate::model::likelihood::{coordinate_prior, log_likelihood_position, log_likelihood_rotation, window_start_prior, Evidence};
 use crate::model::{decode, displacement, tree, Displacement, JointParams, JointType, ModelConfig};
@@ -859,14 +859,8 @@ fn fit_from(
                     } else {
                         // Dynamic mode: the start of the first window and of every window that
                         // does not continue the previous one (later ones follow by continuity,
-                        // the rest by the physics prior).
-                        let starts = std::iter::once(0).chain(ev.windows.iter().filter(|w| !w.continues).map(|w| w.frames[0]));
-                        let mut done = Vec::new();
-                        for f in starts {
-                            if done.contains(&f) {
-                                continue;
-                            }
-                            done.push(f);
+                        // the rest by the physics prior), as the density has them.
+                        for f in window_starts(ev) {
                             let (m0, s0) = (theta[qm + f], theta[qs + f].exp());
                             let (l, dm, ds) = window_start_prior(m0, s0, model);
                             a += l;

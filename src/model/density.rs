@@ -13,8 +13,9 @@
 //!   kinematic mode, the coordinates' velocity scale;
 //! - the prior of the joint coordinates: kinematic mode, the random walk of
 //!   [`crate::model::likelihood::coordinate_prior`]; dynamic mode, window starts
-//!   ([`crate::model::likelihood::window_start_prior`]: reset or anywhere), the physics prior of each window made robust to windows it
-//!   cannot explain, and the rests between and after windows ([`physics_prior`]).
+//!   ([`crate::model::likelihood::window_start_prior`]: reset or anywhere), the physics prior of
+//!   each window made robust to windows it cannot explain, and the rests between and after
+//!   windows ([`physics_prior`]).
 //!
 //! The latents are unconstrained already: the priors are defined on the standardised
 //! parameters (decoding to physical units is part of the model, not a change of variables), and

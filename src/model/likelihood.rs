@@ -446,19 +446,16 @@ pub fn log_likelihood_rotation<T: Real>(o: &RotationObs, r: &Matrix3<T>, sigma_r
 /// class 2). With the broad prior alone every such start costs a movable joint type about
 /// `log(s_b / s)` nats (7 for a 1 mm guide against 1 m) that the rigid type does not pay: an
 /// object recorded in 6 episodes charges each movable part some 40 nats. Measured on the corpus
-/// with `inference.tol_type_nats` (README, "Why movable parts come out
-/// rigid at P = 1.00"): off by default for now.
+/// with `inference.tol_type_nats` (README, "Why movable parts come out rigid at P = 1.00"): off
+/// by default for now.
 pub fn window_start_prior(m: f64, s: f64, cfg: &ModelConfig) -> (f64, f64, f64) {
     let ln2pi = (2.0 * std::f64::consts::PI).ln();
     let p = cfg.window_reset_prob.clamp(0.0, 1.0);
     let comps = [(p, cfg.window_reset_sd_m), (1.0 - p, cfg.window_start_sd_m)];
-    let e: Vec<f64> = comps
-        .iter()
-        .map(|&(p, sd)| {
-            let var = sd * sd;
-            if p > 0.0 { p.ln() - (m * m + s * s) / (2.0 * var) - 0.5 * (var.ln() + ln2pi) } else { f64::NEG_INFINITY }
-        })
-        .collect();
+    let e = comps.map(|(p, sd)| {
+        let var = sd * sd;
+        if p > 0.0 { p.ln() - (m * m + s * s) / (2.0 * var) - 0.5 * (var.ln() + ln2pi) } else { f64::NEG_INFINITY }
+    });
     let top = e[0].max(e[1]);
     let v = top + e.iter().map(|x| (x - top).exp()).sum::<f64>().ln();
     let (mut dm, mut ds) = (0.0, 0.0);
