@@ -552,6 +552,13 @@ pub fn agreement(rows: &[ObjectRow]) -> Agreement {
 /// # Errors
 /// [`CorpusError`] when the corpus cannot be listed.
 pub fn run(corpus: &Path, split: &str, layouts: &[Layout], cfg: &Config, jobs: usize, baselines: bool) -> Result<CorpusReport, CorpusError> {
+    // The cores are shared among the objects scored at once (each fit's own threads, see
+    // `SviConfig::threads`), unless the configuration names a number.
+    let mut cfg = cfg.clone();
+    if cfg.inference.threads == 0 {
+        cfg.inference.threads = (crate::inference::parallel::resolve_threads(0) / jobs.max(1)).max(1);
+    }
+    let cfg = &cfg;
     let objects: Vec<CorpusObject> = list(corpus)?.into_iter().filter(|o| split == "all" || o.split == split).collect();
     let tasks: Vec<(usize, Layout)> = layouts.iter().flat_map(|&l| (0..objects.len()).map(move |i| (i, l))).collect();
     let next = AtomicUsize::new(0);

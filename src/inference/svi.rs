@@ -52,6 +52,7 @@ use serde::{Deserialize, Serialize};
 use super::adam::Adam;
 use super::guide::{self, Block, GuideState, Layout};
 use super::laplace;
+use super::parallel;
 use super::structure;
 use super::summary::{self, softmax};
 use super::Posterior;
@@ -158,6 +159,12 @@ pub struct SviConfig {
     /// Samples used for the posterior summaries.
     pub summary_samples: usize,
     pub seed: u64,
+    /// Threads of one fit (0: every core the process may use). The blocks' likelihood passes,
+    /// physics priors and Laplace steps of an iteration run on them; when the two starts of
+    /// [`fit`] run at once, each gets half. The result does not depend on it (the pieces are
+    /// combined in a fixed order): it trades wall time for cores, e.g. `bom eval --jobs` divides
+    /// the cores among its objects.
+    pub threads: usize,
 }
 
 impl Default for SviConfig {
@@ -192,6 +199,7 @@ impl Default for SviConfig {
             init_kinodynamic_sd: 0.3,
             summary_samples: 400,
             seed: 0,
+            threads: 0,
         }
     }
 }
@@ -315,63 +323,74 @@ fn laplace_kinodynamics(
     model: &ModelConfig,
     initial: bool,
     collapsed: bool,
+    cores: &parallel::Cores,
 ) {
     let n = ev.parts.len();
     let k_frames = ev.len();
     let means: Vec<Vec<BlockSample>> = (0..n).map(|i| layout.blocks[i].iter().map(|b| mean_block(ev, i, b, theta, model)).collect()).collect();
     let chosen: Vec<PartValue<'_>> = (0..n).map(|i| means[i][types[i]].value()).collect();
     let transforms = part_transforms(parent, &chosen, k_frames);
-    for i in 0..n {
-        let pre = pre_transforms(parent, i, &transforms, k_frames);
-        let desc = tree::descendants(parent, i);
-        for b in &layout.blocks[i] {
-            let Some(kd) = b.kd else { continue };
-            if collapsed && b.joint.index() != types[i] {
-                // Only the reported block: the part's most probable type, when movable.
-                continue;
-            }
-            let mut s = mean_block(ev, i, b, theta, model);
-            if collapsed {
-                axis_inflation[i] = position_inflation(ev, i, &s, &pre);
-                tracing::debug!("part {} {:?}: axis variance inflation {:.2}", ev.parts[i].label, b.joint, axis_inflation[i]);
-            }
-            let observed = collapsed.then(|| dynamics::Observed { var: observed_coordinates(ev, i, &mut s, &pre), nu: model.student_nu });
-            // Log posterior of the block (physics prior + N(0, I)) and its gradient.
-            let mut post = |xi: &[f64]| {
-                s.kd = Some((vec![0.0; kd.dim], xi.to_vec()));
-                let (l, g, _) = physics_prior(ev, i, &s.value(), observed.as_ref(), &pre, &desc, &chosen, &transforms, model, false, None);
-                let l = l - 0.5 * xi.iter().map(|x| x * x).sum::<f64>();
-                let g: Vec<f64> = g.iter().zip(xi).map(|(g, x)| g - x).collect();
-                (l, g)
-            };
-            let mut x: Vec<f64> = theta[kd.mu..kd.mu + kd.dim].to_vec();
-            if initial {
-                (x[2], x[3]) = (0.0, 1.0);
-                laplace::coarse_grid(&mut post, &mut x);
-            }
-            // The reported (collapsed) fit runs to convergence; the guide's Laplace steps between
-            // Adam phases need not, as the next phase continues from them.
-            let x = laplace::mode_steps(&mut post, x, if collapsed { COLLAPSED_MODE_STEPS } else { laplace::MODE_STEPS });
-            theta[kd.mu..kd.mu + kd.dim].copy_from_slice(&x);
-            // Covariance: the inverse negative Hessian at the mode, where it is positive definite.
-            // (The guide keeps it: the ELBO's expectations are over it. The reported intervals
-            // also allow for the deviations' correlation and the windows' disagreement, see
-            // `variance_inflation` and `cluster_inflation`.)
-            let neg_h = -laplace::hessian(&mut post, &x);
-            s.kd = Some((vec![0.0; kd.dim], x.clone()));
-            let mut scores = Vec::new();
-            let (_, _, gq) = physics_prior(ev, i, &s.value(), observed.as_ref(), &pre, &desc, &chosen, &transforms, model, false, Some(&mut scores));
-            let (ar1, robust) = (variance_inflation(ev, &gq), cluster_inflation(&neg_h, &scores));
-            tracing::debug!("part {} {:?}: variance inflation AR(1) {ar1:.2}, window-robust {robust:.2}", ev.parts[i].label, b.joint);
-            inflation[i][b.joint.index()] = ar1.max(robust);
-            if let Some(cov) = neg_h.clone().cholesky().map(|c| c.inverse()) {
-                if let Some(l) = cov.cholesky() {
-                    let l = l.l();
-                    for r in 0..kd.dim {
-                        for c in 0..=r {
-                            theta[kd.chol + r * (r + 1) / 2 + c] = if r == c { l[(r, r)].max(1e-6).ln() } else { l[(r, c)] };
-                        }
-                    }
+    let pres: Vec<Vec<Displacement<f64>>> = (0..n).map(|i| pre_transforms(parent, i, &transforms, k_frames)).collect();
+    let descs: Vec<Vec<usize>> = (0..n).map(|i| tree::descendants(parent, i)).collect();
+    // Only the reported block when collapsed (the part's most probable type, when movable).
+    let jobs: Vec<(usize, &Block)> = (0..n)
+        .flat_map(|i| layout.blocks[i].iter().map(move |b| (i, b)))
+        .filter(|(i, b)| b.kd.is_some() && !(collapsed && b.joint.index() != types[*i]))
+        .collect();
+    // Each block's fit reads only its own slots of `theta` and writes only those: the blocks run
+    // on the spare `cores` and their results are written back in block order.
+    let theta_in: &[f64] = theta;
+    let fits = cores.map(jobs.len(), |j| {
+        let (i, b) = jobs[j];
+        let (pre, desc) = (&pres[i], &descs[i]);
+        let kd = b.kd.expect("jobs have kinodynamics");
+        let mut s = mean_block(ev, i, b, theta_in, model);
+        let axis = collapsed.then(|| {
+            let a = position_inflation(ev, i, &s, pre);
+            tracing::debug!("part {} {:?}: axis variance inflation {a:.2}", ev.parts[i].label, b.joint);
+            a
+        });
+        let observed = collapsed.then(|| dynamics::Observed { var: observed_coordinates(ev, i, &mut s, pre), nu: model.student_nu });
+        // Log posterior of the block (physics prior + N(0, I)) and its gradient.
+        let mut post = |xi: &[f64]| {
+            s.kd = Some((vec![0.0; kd.dim], xi.to_vec()));
+            let (l, g, _) = physics_prior(ev, i, &s.value(), observed.as_ref(), pre, desc, &chosen, &transforms, model, false, None);
+            let l = l - 0.5 * xi.iter().map(|x| x * x).sum::<f64>();
+            let g: Vec<f64> = g.iter().zip(xi).map(|(g, x)| g - x).collect();
+            (l, g)
+        };
+        let mut x: Vec<f64> = theta_in[kd.mu..kd.mu + kd.dim].to_vec();
+        if initial {
+            (x[2], x[3]) = (0.0, 1.0);
+            laplace::coarse_grid(&mut post, &mut x);
+        }
+        // The reported (collapsed) fit runs to convergence; the guide's Laplace steps between
+        // Adam phases need not, as the next phase continues from them.
+        let x = laplace::mode_steps(&mut post, x, if collapsed { COLLAPSED_MODE_STEPS } else { laplace::MODE_STEPS });
+        // Covariance: the inverse negative Hessian at the mode, where it is positive definite.
+        // (The guide keeps it: the ELBO's expectations are over it. The reported intervals
+        // also allow for the deviations' correlation and the windows' disagreement, see
+        // `variance_inflation` and `cluster_inflation`.)
+        let neg_h = -laplace::hessian(&mut post, &x);
+        s.kd = Some((vec![0.0; kd.dim], x.clone()));
+        let mut scores = Vec::new();
+        let (_, _, gq) = physics_prior(ev, i, &s.value(), observed.as_ref(), pre, desc, &chosen, &transforms, model, false, Some(&mut scores));
+        let (ar1, robust) = (variance_inflation(ev, &gq), cluster_inflation(&neg_h, &scores));
+        tracing::debug!("part {} {:?}: variance inflation AR(1) {ar1:.2}, window-robust {robust:.2}", ev.parts[i].label, b.joint);
+        let chol = neg_h.clone().cholesky().map(|c| c.inverse()).and_then(|cov| cov.cholesky()).map(|l| l.l());
+        (x, ar1.max(robust), axis, chol)
+    });
+    for (&(i, b), (x, infl, axis, chol)) in jobs.iter().zip(fits) {
+        let kd = b.kd.expect("jobs have kinodynamics");
+        theta[kd.mu..kd.mu + kd.dim].copy_from_slice(&x);
+        inflation[i][b.joint.index()] = infl;
+        if let Some(a) = axis {
+            axis_inflation[i] = a;
+        }
+        if let Some(l) = chol {
+            for r in 0..kd.dim {
+                for c in 0..=r {
+                    theta[kd.chol + r * (r + 1) / 2 + c] = if r == c { l[(r, r)].max(1e-6).ln() } else { l[(r, c)] };
                 }
             }
         }
@@ -642,16 +661,24 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Wa
     let two = diverged || per_frame.parent != bic.parent || per_frame.best_types() != bic.best_types();
     // The two starts are independent fits (each its own warm start and seeded RNG): run them on
     // two threads, so that the second start costs no wall time where a core is free.
+    let threads = parallel::resolve_threads(cfg.threads);
     let (first, second) = if two {
         let own = warm.map(|w| w.per_frame.as_ref().unwrap_or(&w.bic));
+        // Each start holds one core; the first to finish gives its core to the other.
+        let cores = parallel::Cores::new(threads, 2);
         std::thread::scope(|s| {
-            let other = s.spawn(|| fit_from(ev, model, cfg, own, &log_w, &per_frame));
-            let first = fit_from(ev, model, cfg, warm.map(|w| &w.bic), &log_w, &bic);
+            let other = s.spawn(|| {
+                let fitted = fit_from(ev, model, cfg, own, &log_w, &per_frame, &cores);
+                cores.give(1);
+                fitted
+            });
+            let first = fit_from(ev, model, cfg, warm.map(|w| &w.bic), &log_w, &bic, &cores);
+            cores.give(1);
             // A panic in the other start's fit is a bug: let it surface as this thread's.
             (first, other.join().unwrap_or_else(|e| std::panic::resume_unwind(e)))
         })
     } else {
-        (fit_from(ev, model, cfg, warm.map(|w| &w.bic), &log_w, &bic), None)
+        (fit_from(ev, model, cfg, warm.map(|w| &w.bic), &log_w, &bic, &parallel::Cores::new(threads, 1)), None)
     };
     let mut fitted = first?;
     if let Some(other) = second {
@@ -689,6 +716,7 @@ fn fit_from(
     warm: Option<&GuideState>,
     log_w: &[Vec<f64>],
     start: &structure::InitialStructure,
+    cores: &parallel::Cores,
 ) -> Option<Fitted> {
     let started = Instant::now();
     let n = ev.parts.len();
@@ -723,7 +751,7 @@ fn fit_from(
     let start_tree = tree::fixed(&start.parent);
     let start_types = start.best_types();
     if !ev.windows.is_empty() {
-        laplace_kinodynamics(ev, &layout, &mut theta, &mut inflation, &mut [], &start.parent, &start_types, model, true, false);
+        laplace_kinodynamics(ev, &layout, &mut theta, &mut inflation, &mut [], &start.parent, &start_types, model, true, false, cores);
     }
     let map_tree = |theta: &[f64]| -> Vec<usize> {
         tree::max_arborescence(&(0..n).map(|i| theta[layout.parent_logits[i]..layout.parent_logits[i] + n + 1].to_vec()).collect::<Vec<_>>())
@@ -923,20 +951,33 @@ fn fit_from(
                 lik_total += pw * ll;
             }
 
+            // Every block's likelihood pass and physics prior on this particle's samples: they do
+            // not depend on one another (nor on the parent logits stepped below), so they run on
+            // the spare `cores` and are combined in block order, as a serial loop would.
+            let pres: Vec<Vec<Displacement<f64>>> = (0..n).map(|i| pre_transforms(&g_tree.parent, i, &transforms, k_frames)).collect();
+            let descs: Vec<Vec<usize>> = (0..n).map(|i| tree::descendants(&g_tree.parent, i)).collect();
+            let subtrees: Vec<_> = (0..n).map(|i| subtree_members(&g_tree.parent, i, &transforms, &positions, &chosen)).collect();
+            let jobs: Vec<(usize, usize)> = (0..n).flat_map(|i| (0..layout.blocks[i].len()).map(move |k| (i, k))).collect();
+            let passes = cores.map(jobs.len(), |j| {
+                let (i, k) = jobs[j];
+                let (b, s) = (&layout.blocks[i][k], &samples[i][k]);
+                let pass = block_pass(ev, i, b.joint, &s.xi, &s.q, &pres[i], &subtrees[i], model);
+                let physics = (b.kd.is_some() && s.kd.is_some())
+                    .then(|| physics_prior(ev, i, &s.value(), None, &pres[i], &descs[i], &chosen, &transforms, model, true, None));
+                (pass, physics)
+            });
+            let mut passes = passes.into_iter();
             for i in 0..n {
-                let pre = pre_transforms(&g_tree.parent, i, &transforms, k_frames);
-                let desc = tree::descendants(&g_tree.parent, i);
-                let subtree = subtree_members(&g_tree.parent, i, &transforms, &positions, &chosen);
+                let (pre, desc) = (&pres[i], &descs[i]);
                 for (k, b) in layout.blocks[i].iter().enumerate() {
                     let s = &samples[i][k];
-                    let (l, gx, mut gq) = block_pass(ev, i, b.joint, &s.xi, &s.q, &pre, &subtree, model);
+                    let ((l, gx, mut gq), physics) = passes.next().expect("one pass per block");
                     let mut f = l + analytic[i][k];
                     if final_left.is_some() {
                         f_parts[i][k][0] += pw * l;
                         f_parts[i][k][1] += pw * analytic[i][k];
                     }
-                    if let (Some(kd), Some((eps, _))) = (b.kd, &s.kd) {
-                        let (ld, gkd, gqd) = physics_prior(ev, i, &s.value(), None, &pre, &desc, &chosen, &transforms, model, true, None);
+                    if let (Some(kd), Some((eps, _)), Some((ld, gkd, gqd))) = (b.kd, &s.kd, physics) {
                         f += ld;
                         if final_left.is_some() {
                             f_parts[i][k][2] += pw * ld;
@@ -965,7 +1006,7 @@ fn fit_from(
                 let adm = &g_tree.admissible[i];
                 if phase >= 2 && n > 1 && adm.len() > 1 {
                     let mut members = vec![i];
-                    members.extend(&desc);
+                    members.extend(desc);
                     let target: Vec<f64> = adm
                         .iter()
                         .map(|&j| {
@@ -1059,7 +1100,7 @@ fn fit_from(
                         (map_tree(&theta), map_types(&theta))
                     };
                     if !ev.windows.is_empty() {
-                        laplace_kinodynamics(ev, &layout, &mut theta, &mut inflation, &mut [], &parents, &types, model, false, false);
+                        laplace_kinodynamics(ev, &layout, &mut theta, &mut inflation, &mut [], &parents, &types, model, false, false, cores);
                     }
                     if coarsen {
                         zeta = comparison_weights(ev, &layout, &theta, &parents, &types, model);
@@ -1159,7 +1200,7 @@ fn fit_from(
     if !ev.windows.is_empty() {
         let types: Vec<usize> = type_logits.iter().map(|l| (0..3).max_by(|&a, &b| l[a].total_cmp(&l[b])).unwrap_or(0)).collect();
         let tree = tree::max_arborescence(&parent_logits);
-        laplace_kinodynamics(ev, &layout, &mut report, &mut inflation, &mut axis_inflation, &tree, &types, model, false, true);
+        laplace_kinodynamics(ev, &layout, &mut report, &mut inflation, &mut axis_inflation, &tree, &types, model, false, true, cores);
     } else if coarsen {
         // Kinematic mode: the axis spread widened by `n / n_eff` of the residuals of the movable
         // type the axis is reported for, as dynamic mode's is by `position_inflation`: on the
