@@ -159,11 +159,12 @@ pub struct SviConfig {
     /// Samples used for the posterior summaries.
     pub summary_samples: usize,
     pub seed: u64,
-    /// Threads of one fit (0: every core the process may use). The blocks' likelihood passes,
-    /// physics priors and Laplace steps of an iteration run on them; when the two starts of
-    /// [`fit`] run at once, each gets half. The result does not depend on it (the pieces are
-    /// combined in a fixed order): it trades wall time for cores, e.g. `bom eval --jobs` divides
-    /// the cores among its objects.
+    /// Cores one fit may use (0: every core the process may use). The blocks' likelihood passes,
+    /// physics priors and Laplace steps of an iteration run on the spare ones; when the two starts
+    /// of [`fit`] run at once, each holds one and the first to finish gives its core to the other
+    /// ([`parallel::Cores`]; the two starts take two threads even where this is 1). The result
+    /// does not depend on it (the pieces are combined in a fixed order): it trades wall time for
+    /// cores, e.g. `bom eval --jobs` divides the cores among its objects.
     pub threads: usize,
 }
 
