@@ -33,6 +33,7 @@ pub mod model;
 pub mod msgs;
 pub mod node;
 pub mod output;
+pub mod parallel;
 pub mod perception;
 pub mod pipeline;
 pub mod prediction;

@@ -41,6 +41,7 @@ use crate::model::dynamics::{self, DynamicsConfig};
 use crate::model::effects::{EffectKind, EffectSet, LimitSpec};
 use crate::model::likelihood::Evidence;
 use crate::model::JointType;
+use crate::parallel;
 pub use residuals::{Pattern, Phases, ResidualPoint};
 use residuals::{part_transforms, rmse, JointSeries};
 
@@ -229,7 +230,8 @@ pub fn criticise(ev: &Evidence, post: &Posterior, adopted: &BTreeMap<u32, Effect
             }
         }
         // The candidates are independent fits: spread them over the cores.
-        let tried: Vec<(EffectKind, Candidate)> = parallel_map(&variants, |&(kind, limit)| {
+        let tried: Vec<(EffectKind, Candidate)> = parallel::map(parallel::resolve_threads(0), variants.len(), |j| {
+            let (kind, limit) = variants[j];
             let effects = anchored(current.with(kind, limit), &series, &|_| true, None);
             let c = candidate(&series, &ev.times, effects, &start, dyncfg);
             tracing::debug!(
@@ -281,21 +283,6 @@ pub fn criticise(ev: &Evidence, post: &Posterior, adopted: &BTreeMap<u32, Effect
     }
     out.runtime_s = started.elapsed().as_secs_f64();
     out
-}
-
-/// `f` over `items` on up to as many threads as the machine has cores, results in `items`'
-/// order (so the outcome does not depend on the thread count).
-fn parallel_map<T: Sync, R: Send>(items: &[T], f: impl Fn(&T) -> R + Sync) -> Vec<R> {
-    let threads = std::thread::available_parallelism().map_or(1, |n| n.get()).min(items.len()).max(1);
-    if threads == 1 {
-        return items.iter().map(&f).collect();
-    }
-    let chunk = items.len().div_ceil(threads);
-    let f = &f;
-    std::thread::scope(|s| {
-        let jobs: Vec<_> = items.chunks(chunk).map(|c| s.spawn(move || c.iter().map(f).collect::<Vec<R>>())).collect();
-        jobs.into_iter().flat_map(|j| j.join().unwrap_or_else(|e| std::panic::resume_unwind(e))).collect()
-    })
 }
 
 /// `effects` with each joint stop anchored at the most extreme coordinate observed on its side in

@@ -556,7 +556,7 @@ pub fn run(corpus: &Path, split: &str, layouts: &[Layout], cfg: &Config, jobs: u
     // `SviConfig::threads`), unless the configuration names a number.
     let mut cfg = cfg.clone();
     if cfg.inference.threads == 0 {
-        cfg.inference.threads = (crate::inference::parallel::resolve_threads(0) / jobs.max(1)).max(1);
+        cfg.inference.threads = (crate::parallel::resolve_threads(0) / jobs.max(1)).max(1);
     }
     let cfg = &cfg;
     let objects: Vec<CorpusObject> = list(corpus)?.into_iter().filter(|o| split == "all" || o.split == split).collect();

@@ -9,7 +9,6 @@ pub mod adam;
 pub mod guide;
 pub mod laplace;
 pub mod nuts;
-pub mod parallel;
 pub mod structure;
 pub mod summary;
 pub mod svi;

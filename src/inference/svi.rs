@@ -52,7 +52,7 @@ use serde::{Deserialize, Serialize};
 use super::adam::Adam;
 use super::guide::{self, Block, GuideState, Layout};
 use super::laplace;
-use super::parallel;
+use crate::parallel;
 use super::structure;
 use super::summary::{self, softmax};
 use super::Posterior;

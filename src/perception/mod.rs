@@ -34,6 +34,7 @@ use nalgebra::{Isometry3, Matrix3, Matrix3x6, Matrix6, Point3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use crate::input::CloudFrame;
+use crate::parallel;
 use registration::{FramePoints, Tracker};
 
 /// Perception settings (`perception` section of the config).
@@ -228,12 +229,7 @@ impl Perception {
     /// parts' trackers are independent given the split).
     pub fn observe_all(&mut self, clouds: &[CloudFrame]) -> PartTracks {
         let cfg = &self.config;
-        let threads = std::thread::available_parallelism().map_or(1, |n| n.get()).clamp(1, clouds.len().max(1));
-        let chunk = clouds.len().div_ceil(threads).max(1);
-        let split: Vec<Vec<SplitPart>> = std::thread::scope(|sc| {
-            let jobs: Vec<_> = clouds.chunks(chunk).map(|cs| sc.spawn(move || cs.iter().map(|c| split_parts(c, cfg)).collect::<Vec<_>>())).collect();
-            jobs.into_iter().flat_map(|j| j.join().unwrap_or_else(|e| std::panic::resume_unwind(e))).collect()
-        });
+        let split: Vec<Vec<SplitPart>> = parallel::map(parallel::resolve_threads(0), clouds.len(), |j| split_parts(&clouds[j], cfg));
         // Every part's frames in time order.
         let mut per_part: BTreeMap<u32, Vec<(f64, SplitPart)>> = BTreeMap::new();
         for (c, parts) in clouds.iter().zip(split) {

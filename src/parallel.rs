@@ -1,12 +1,12 @@
-//! Data parallelism inside one fit: independent pieces of an iteration (each block's conditional
-//! ELBO and physics prior, each block's Laplace step) on a few threads.
+//! Data parallelism shared by the stages: independent jobs on a few threads (perception's clouds,
+//! the blocks of one SVI iteration and their Laplace steps, criticism's candidate effects).
 //!
-//! Results come back in job order and are combined by the caller in that order, so a fit is
+//! Results come back in job order and are combined by the caller in that order, so a result is
 //! bit-identical for every thread count (floating-point sums are not reordered).
 
 use std::sync::atomic::{AtomicIsize, AtomicUsize, Ordering};
 
-/// The number of threads a fit uses for `requested` (0: every core the process may use, as
+/// The number of threads for `requested` (0: every core the process may use, as
 /// [`std::thread::available_parallelism`] reports; 1 when that is unknown).
 pub fn resolve_threads(requested: usize) -> usize {
     if requested > 0 {
@@ -47,7 +47,7 @@ pub fn map<R: Send>(threads: usize, jobs: usize, f: impl Fn(usize) -> R + Sync) 
     done.into_iter().map(|(_, r)| r).collect()
 }
 
-/// Cores shared by concurrent work of one fit (the two starts of [`crate::inference::svi::fit`]):
+/// Cores shared by concurrent work of one SVI fit (the two starts of [`crate::inference::svi::fit`]):
 /// each piece of parallel work borrows the spare ones for its duration, and a start that finishes
 /// gives its own core to the other. Which thread runs a job never changes a result ([`map`]).
 #[derive(Debug)]
