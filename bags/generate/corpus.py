@@ -28,6 +28,9 @@ Output (`--out DIR`):
   stamps 300 s apart (separate episodes, as most interaction datasets are laid out);
 - `DIR/manifest.json`: per object its name, family, seed, split (`tune` for every third object by
   index, `validation` otherwise: about a third to tune), bags of both layouts, parts and joints.
+  With `--tune-only` every object is `tune`: a further corpus for choosing settings only (the
+  `tune` split of one corpus is small; README, "A larger tune split"). Its seeds must not meet the
+  main corpus's (object `i` uses `--seed + i`, a redraw `+ 1000` per attempt): e.g. `--seed 200000`.
 
 Objects whose recording fails the recorder's checks (a stop reached, parts touching) are redrawn
 from the next seed (`seed_used` in the manifest).
@@ -454,6 +457,8 @@ def run(record_one, doc, default_objects, argv=None):
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--only", help="comma-separated object indices (remake those alone)")
+    ap.add_argument("--tune-only", action="store_true",
+                    help="mark every object `tune`: a further corpus, drawn from other seeds, for choosing settings only")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -467,6 +472,9 @@ def run(record_one, doc, default_objects, argv=None):
         if r is not None:
             keep[r["index"]] = r
     objects = [keep[i] for i in sorted(keep)]
+    if args.tune_only:
+        for o in objects:
+            o["split"] = "tune"
     manifest_path.write_text(json.dumps({"seed": args.seed, "objects": objects}, indent=1) + "\n")
     return objects, manifest_path
 
