@@ -447,10 +447,11 @@ def record_object(out, index, seed0):
 
 
 def run(record_one, doc, default_objects, argv=None):
-    """The command line of a corpus script (`--out`, `--objects`, `--seed`, `--jobs`, `--only`):
-    record every object with `record_one(out, index, seed)` (a manifest row, or None when left
-    out) on `--jobs` processes, merge the rows into `OUT/manifest.json` (with `--only`, into the
-    rows already there) and return (objects, manifest path)."""
+    """The command line of a corpus script (`--out`, `--objects`, `--seed`, `--jobs`, `--only`,
+    `--tune-only`): record every object with `record_one(out, index, seed)` (a manifest row, or
+    None when left out) on `--jobs` processes, merge the rows into `OUT/manifest.json` (with
+    `--only`, into the rows already there; with `--tune-only`, every row's split set to `tune`)
+    and return (objects, manifest path)."""
     ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     ap.add_argument("--out", required=True)
     ap.add_argument("--objects", type=int, default=default_objects)
