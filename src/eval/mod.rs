@@ -38,6 +38,13 @@ pub struct PartMetrics {
     /// value of 0).
     pub damping_rel_error: Option<f64>,
     pub friction_rel_error: Option<f64>,
+    /// The posterior medians and true values behind those errors (damping N·s/m or N·m·s/rad,
+    /// friction N or N·m, the joint's own units; beyond contract section 6): the sign of an
+    /// error, which the relative error drops, is what tells a bias from noise.
+    pub damping_median: Option<f64>,
+    pub damping_true: Option<f64>,
+    pub friction_median: Option<f64>,
+    pub friction_true: Option<f64>,
     /// Whether the true value lies in the 90% posterior interval (calibration, beyond contract
     /// section 6): damping and friction in `[q05, q95]` (not defined for a true value of 0, which
     /// a positive parameter's interval cannot hold), the axis direction within the 90% credible
@@ -204,6 +211,10 @@ fn part_metrics(gt: &GroundTruth, part: &GtPart, post: &Posterior, statics: &[u3
         axis_offset_at_point_m,
         damping_rel_error: rel(kd.map(|k| k.damping.median), part.damping),
         friction_rel_error: rel(kd.map(|k| k.friction.median), part.friction),
+        damping_median: kd.map(|k| k.damping.median),
+        damping_true: kd.and(part.damping),
+        friction_median: kd.map(|k| k.friction.median),
+        friction_true: kd.and(part.friction),
         damping_covered: inside(damping_interval, part.damping),
         friction_covered: inside(friction_interval, part.friction),
         axis_covered: axis_angle_deg.zip(axis_cone_deg).map(|(a, c)| a <= c),
