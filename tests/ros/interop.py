@@ -173,7 +173,7 @@ def main():
 
     # Our writers see bom's readers matched (above) before bom's readers may have matched our
     # writers, and a volatile reader matched late never gets what was written before: CI lost
-    # the first four bad messages once in many runs (stop 52, the machine busy). So the burst is
+    # the first four bad messages once (stop 52). So the burst is
     # sent again until bom has warned about its first and last message (each counts >= 1 below).
     for _ in range(10):
         pubs["/segmented_points"].publish(malformed)
