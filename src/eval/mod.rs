@@ -197,6 +197,7 @@ fn part_metrics(gt: &GroundTruth, part: &GtPart, post: &Posterior, statics: &[u3
     let damping_interval = kd.map(|k| [k.damping.q05, k.damping.q95]);
     let friction_interval = kd.map(|k| [k.friction.q05, k.friction.q95]);
     let axis_cone_deg = axis.map(|a| a.direction_q90_deg);
+    let (damping_median, friction_median) = (kd.map(|k| k.damping.median), kd.map(|k| k.friction.median));
     PartMetrics {
         label: part.label,
         true_joint: part.joint.clone(),
@@ -209,11 +210,11 @@ fn part_metrics(gt: &GroundTruth, part: &GtPart, post: &Posterior, statics: &[u3
         axis_angle_deg,
         axis_offset_m,
         axis_offset_at_point_m,
-        damping_rel_error: rel(kd.map(|k| k.damping.median), part.damping),
-        friction_rel_error: rel(kd.map(|k| k.friction.median), part.friction),
-        damping_median: kd.map(|k| k.damping.median),
+        damping_rel_error: rel(damping_median, part.damping),
+        friction_rel_error: rel(friction_median, part.friction),
+        damping_median,
         damping_true: kd.and(part.damping),
-        friction_median: kd.map(|k| k.friction.median),
+        friction_median,
         friction_true: kd.and(part.friction),
         damping_covered: inside(damping_interval, part.damping),
         friction_covered: inside(friction_interval, part.friction),

@@ -44,14 +44,12 @@ pub fn isolated_free(pts: &[Point3<f64>], k: usize) -> Vec<usize> {
     }
     let mut tree: KdTree<f64, 3> = KdTree::new();
     let mut seen = std::collections::HashSet::new();
-    let mut distinct = 0usize;
     for (i, p) in pts.iter().enumerate() {
         if seen.insert((p.x.to_bits(), p.y.to_bits(), p.z.to_bits())) {
             tree.add(&[p.x, p.y, p.z], i as u64);
-            distinct += 1;
         }
     }
-    if distinct <= k + 1 {
+    if seen.len() <= k + 1 {
         return (0..pts.len()).collect();
     }
     // Mean distance to the k nearest other points (the nearest returned is the point itself).
