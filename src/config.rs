@@ -67,6 +67,10 @@ impl Config {
         if cfg.fixed_frame.is_empty() {
             cfg.fixed_frame = "world".into();
         }
+        // A rate of 0 or below would report every joint type as equally probable, NaN nothing.
+        if !(cfg.inference.report_rate.is_finite() && cfg.inference.report_rate > 0.0) {
+            return Err(format!("{source}: inference.report_rate must be a positive number, got {}", cfg.inference.report_rate));
+        }
         Ok(cfg)
     }
 }
@@ -84,6 +88,8 @@ mod tests {
         std::fs::write(&bad, "bom:\n  ros__parameters:\n    windows: {force_open: 2}\n").unwrap();
         let e = Config::load(&bad).unwrap_err();
         assert!(e.contains("force_open"), "{e}");
+        let e = Config::from_yaml("inference: {report_rate: -0.1}", "test").unwrap_err();
+        assert!(e.contains("inference.report_rate"), "{e}");
     }
 
     /// Every key path of a YAML mapping, `a.b.c`; sequences are values.
