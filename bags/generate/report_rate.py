@@ -4,8 +4,9 @@ stop 53).
 
 With `coarsen: report` (dynamic mode) each part's reported log-probabilities are its joint types'
 gaps below the fit's most probable type times `report_rate * n_eff / n`, so a report made at rate
-1 gives the one at any rate `eta` exactly by multiplying its log-probabilities by `eta` (up to
-the 300-nat floor, which no rate below 1 reaches). Prints, per rate, the Brier score (summed over
+1 gives the one at any rate `eta` by multiplying its log-probabilities by `eta` — exactly,
+except that a gap clipped at the 300-nat floor at rate 1 becomes `300 x eta` nats here where
+`bom` would report more (at rate 0.1 either way a probability below 1e-13). Prints, per rate, the Brier score (summed over
 the three types, mean over parts), the expected calibration error of the top label, the wrong
 calls at P >= 0.95, and the largest gap between mean predicted and observed frequency in a
 reliability bin with at least 20 probabilities — per report and layout, and the Brier scores and
