@@ -1195,6 +1195,9 @@ fn fit_from(
     let mut report: Vec<f64> = avg_theta.iter().map(|a| a / avg_count as f64).collect();
     let type_logits: Vec<[f64; 3]> = (0..n).map(|i| std::array::from_fn(|k| report[layout.type_logits[i] + k])).collect();
     let parent_logits: Vec<Vec<f64>> = (0..n).map(|i| report[layout.parent_logits[i]..layout.parent_logits[i] + n + 1].to_vec()).collect();
+    // The averaged guide's most probable tree and joint types (the Laplace step below changes
+    // only kinodynamic entries of `report`).
+    let (best_tree, best_types) = (map_tree(&report), map_types(&report));
     // Dynamic mode with `Coarsen::Report`: the reported joint-type probabilities compare the
     // final phase's conditional ELBOs on `report_rate * n_eff` frames (the fit's own logits, on
     // `n`, stay in the ELBO and the warm start). Each type's gap below the fit's most probable
@@ -1203,11 +1206,10 @@ fn fit_from(
     // conditional ELBOs (unclipped, but not what the fit's steps followed), so that the
     // reported most probable type is the fit's.
     let reported_type_logits: Vec<[f64; 3]> = if cfg.coarsen == Coarsen::Report && !ev.windows.is_empty() && avg_count > 0 {
-        let types: Vec<usize> = type_logits.iter().map(|l| (0..3).max_by(|&a, &b| l[a].total_cmp(&l[b])).unwrap_or(0)).collect();
-        let weights = comparison_weights(ev, &layout, &report, &tree::max_arborescence(&parent_logits), &types, model);
+        let weights = comparison_weights(ev, &layout, &report, &best_tree, &best_types, model);
         (0..n)
             .map(|i| {
-                let (l, top, f) = (&type_logits[i], types[i], f_avg[i].map(|v| v / avg_count as f64));
+                let (l, top, f) = (&type_logits[i], best_types[i], f_avg[i].map(|v| v / avg_count as f64));
                 let mut out: [f64; 3] = std::array::from_fn(|k| {
                     let fit_gap = (l[top] - log_prior_type[top]) - (l[k] - log_prior_type[k]);
                     let gap = fit_gap.max(f[top] - f[k]).max(0.0);
@@ -1247,17 +1249,14 @@ fn fit_from(
     // probable tree and joint types, on the averaged guide.
     let mut axis_inflation = vec![1.0; n];
     if !ev.windows.is_empty() {
-        let types: Vec<usize> = type_logits.iter().map(|l| (0..3).max_by(|&a, &b| l[a].total_cmp(&l[b])).unwrap_or(0)).collect();
-        let tree = tree::max_arborescence(&parent_logits);
-        laplace_kinodynamics(ev, &layout, &mut report, &mut inflation, &mut axis_inflation, &tree, &types, model, false, true, cores);
+        laplace_kinodynamics(ev, &layout, &mut report, &mut inflation, &mut axis_inflation, &best_tree, &best_types, model, false, true, cores);
     } else if coarsen {
         // Kinematic mode: the axis spread widened by `n / n_eff` of the residuals of the movable
         // type the axis is reported for, as dynamic mode's is by `position_inflation`: on the
         // corpus in kinematic mode the 90% cones held the true axis in 0.40 / 0.54 of cases
         // (validation, continuous / episodes; 0.52 / 0.64 on tune), now 0.54 / 0.70 (0.59 / 0.69).
         let axis_types: Vec<usize> = type_logits.iter().map(|l| if l[2] >= l[1] { 2 } else { 1 }).collect();
-        let tree = tree::max_arborescence(&parent_logits);
-        axis_inflation = comparison_weights(ev, &layout, &report, &tree, &axis_types, model).iter().map(|z| 1.0 / z).collect();
+        axis_inflation = comparison_weights(ev, &layout, &report, &best_tree, &axis_types, model).iter().map(|z| 1.0 / z).collect();
     }
     let joints = summary::joints(ev, model, &layout, &report, &inflation, &axis_inflation, &reported_type_logits, &parent_logits, cfg.summary_samples, &mut rng);
     let posterior = Posterior { joints, elbo, iterations: iters, runtime_s: started.elapsed().as_secs_f64() };
