@@ -47,9 +47,9 @@ pub fn map<R: Send>(threads: usize, jobs: usize, f: impl Fn(usize) -> R + Sync) 
     done.into_iter().map(|(_, r)| r).collect()
 }
 
-/// Cores shared by concurrent work of one SVI fit (the two starts of [`crate::inference::svi::fit`]):
+/// Cores shared by concurrent work of one SVI fit (the starts of [`crate::inference::svi::fit`]):
 /// each piece of parallel work borrows the spare ones for its duration, and a start that finishes
-/// gives its own core to the other. Which thread runs a job never changes a result ([`map`]).
+/// gives its own core to the others. Which thread runs a job never changes a result ([`map`]).
 #[derive(Debug)]
 pub struct Cores {
     /// Cores free for borrowing; negative while the callers' threads outnumber the cores.

@@ -179,9 +179,9 @@ pub struct SviConfig {
     pub summary_samples: usize,
     pub seed: u64,
     /// Cores one fit may use (0: every core the process may use). The blocks' likelihood passes,
-    /// physics priors and Laplace steps of an iteration run on the spare ones; when the two starts
-    /// of [`fit`] run at once, each holds one and the first to finish gives its core to the other
-    /// ([`parallel::Cores`]; the two starts take two threads even where this is 1). The result
+    /// physics priors and Laplace steps of an iteration run on the spare ones; when several starts
+    /// of [`fit`] run at once, each holds one and one that finishes gives its core to the others
+    /// ([`parallel::Cores`]; the starts take a thread each even where this is 1). The result
     /// does not depend on it (the pieces are combined in a fixed order): it trades wall time for
     /// cores, e.g. `bom eval --jobs` divides the cores among its objects.
     pub threads: usize,
@@ -641,35 +641,46 @@ pub struct WarmStart {
     /// The fit from the per-frame start, while the two fits disagree on the most probable tree
     /// or joint types (`None`: they agreed, and both go on from `bic`).
     pub per_frame: Option<GuideState>,
+    /// The fit from BIC's runner-up start ([`structure::InitialStructure::runner_up`]), while it
+    /// disagrees with the BIC start's fit on the most probable tree or joint types (`None`: it
+    /// goes on from `bic`).
+    pub runner_up: Option<GuideState>,
 }
 
 impl WarmStart {
-    /// A warm start from one guide for both starts.
+    /// A warm start from one guide for every start.
     pub fn from_guide(guide: GuideState) -> Self {
-        WarmStart { bic: guide, per_frame: None }
+        WarmStart { bic: guide, per_frame: None, runner_up: None }
     }
 }
 
 /// Fit the guide to the evidence and summarise the posterior, warm-starting from `warm` (the
 /// previous window's fit) when given. Returns `None` when there is no part with observations.
 ///
-/// Two starts: the initial structure (see [`structure`]) with BIC's penalty on every coordinate
-/// and with each coordinate charged by its own frame's observations
-/// ([`structure::CoordinatePenalty`]). Each start is one run of the whole sequence of updates:
-/// it warm-starts from its own previous fit ([`WarmStart`]). When the two start structures
-/// differ (their trees or best joint types), or their previous fits did, both are fitted and the
-/// fit with the higher ELBO is reported: the ELBO is `log p(data)` less the KL from the guide to
-/// the posterior, so the higher one is the closer approximation. When the two fits agree on the
-/// most probable tree and joint types, both runs go on from the BIC start's fit.
+/// Up to three starts: the initial structure (see [`structure`]) with BIC's penalty on every
+/// coordinate, with each coordinate charged by its own frame's observations
+/// ([`structure::CoordinatePenalty`]), and BIC's runner-up tree
+/// ([`structure::InitialStructure::runner_up`]). Each start is one run of the whole sequence of
+/// updates: it warm-starts from its own previous fit ([`WarmStart`]). The per-frame start is
+/// fitted when its structure differs from BIC's (tree or best joint types) or its previous fit
+/// did; the runner-up whenever there is one that differs from both. The fit with the highest
+/// ELBO is reported: the ELBO is `log p(data)` less the KL from the guide to the posterior, so
+/// the higher one is the closer approximation. A start whose fit agrees with the BIC start's on
+/// the most probable tree and joint types goes on from the BIC start's fit (the runner-up too:
+/// started from the data alone at every update, its fit won on `tune` where the tree it starts
+/// from is wrong, a flap riding a slider re-hung from the fixed frame as a prismatic joint).
 ///
 /// Why: the mean-field steps change one discrete factor at a time, and either start can trap the
 /// fit in a joint optimum of tree and types that the other avoids (corpus validation object 44:
 /// from the BIC start the cabinet hangs from a flap that turned 5.6 degrees, which then stays
 /// rigid at P = 1.00, ELBO 10118.8; from the other, every part right, ELBO 10148.3; tune object
-/// 96: the BIC start is the right one). Each run keeps its own warm start because a choice made
-/// on the first windows' scant evidence should not steer every later update: warm-starting both
-/// from the first update's winner (where on `slide_microwave` both trees were wrong) left the
-/// last update's fit following the pushes at the true parameters to 26 mm instead of 14.
+/// 96: the BIC start is the right one). The runner-up is there for trees the kinematic scores
+/// cannot tell apart, which only the physics in the ELBO can (see
+/// [`structure::InitialStructure::runner_up`]). Each run keeps its own warm start because a
+/// choice made on the first windows' scant evidence should not steer every later update:
+/// warm-starting both from the first update's winner (where on `slide_microwave` both trees were
+/// wrong) left the last update's fit following the pushes at the true parameters to 26 mm
+/// instead of 14.
 pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&WarmStart>) -> Option<Fitted> {
     let started = Instant::now();
     if ev.parts.is_empty() || ev.is_empty() {
@@ -678,40 +689,69 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Wa
     let log_w = contact_log_weights(ev, model);
     let bic = structure::initial_structure(ev, model, &log_w, structure::CoordinatePenalty::Bic);
     let per_frame = structure::initial_structure(ev, model, &log_w, structure::CoordinatePenalty::PerFrame);
+    let same = |a: &structure::InitialStructure, b: &structure::InitialStructure| a.parent == b.parent && a.best_types() == b.best_types();
     let diverged = warm.is_some_and(|w| w.per_frame.is_some());
-    let two = diverged || per_frame.parent != bic.parent || per_frame.best_types() != bic.best_types();
-    // The two starts are independent fits (each its own warm start and seeded RNG): run them on
-    // two threads, so that the second start costs no wall time where a core is free.
+    let two = diverged || !same(&per_frame, &bic);
+    let runner_up = bic.runner_up().filter(|r| !same(r, &bic) && !(two && same(r, &per_frame)));
+    tracing::debug!(
+        "start trees (parent nodes, score): BIC {:?} {:.1}, per-frame {:?} {:.1}, runner-up {}",
+        bic.parent,
+        bic.tree_score(),
+        per_frame.parent,
+        per_frame.tree_score(),
+        runner_up.as_ref().map_or("none".to_string(), |r| format!("{:?} {:.1}", r.parent, r.tree_score()))
+    );
+    // The starts (structure, own warm start); the BIC start first.
+    let mut starts: Vec<(&structure::InitialStructure, Option<&GuideState>)> = vec![(&bic, warm.map(|w| &w.bic))];
+    if two {
+        starts.push((&per_frame, warm.map(|w| w.per_frame.as_ref().unwrap_or(&w.bic))));
+    }
+    if let Some(r) = &runner_up {
+        starts.push((r, warm.map(|w| w.runner_up.as_ref().unwrap_or(&w.bic))));
+    }
+    // The starts are independent fits (each its own warm start and seeded RNG): run them on
+    // their own threads, so that a second start costs no wall time where a core is free. Each
+    // start holds one core; one that finishes gives its core to the others.
     let threads = parallel::resolve_threads(cfg.threads);
-    let (first, second) = if two {
-        let own = warm.map(|w| w.per_frame.as_ref().unwrap_or(&w.bic));
-        // Each start holds one core; the first to finish gives its core to the other.
-        let cores = parallel::Cores::new(threads, 2);
-        std::thread::scope(|s| {
-            let other = s.spawn(|| {
-                let fitted = fit_from(ev, model, cfg, own, &log_w, &per_frame, &cores);
-                cores.give(1);
-                fitted
-            });
-            let first = fit_from(ev, model, cfg, warm.map(|w| &w.bic), &log_w, &bic, &cores);
-            cores.give(1);
-            // A panic in the other start's fit is a bug: let it surface as this thread's.
-            (first, other.join().unwrap_or_else(|e| std::panic::resume_unwind(e)))
-        })
-    } else {
-        (fit_from(ev, model, cfg, warm.map(|w| &w.bic), &log_w, &bic, &parallel::Cores::new(threads, 1)), None)
-    };
-    let mut fitted = first?;
-    if let Some(other) = second {
-        tracing::debug!("two starts: ELBO {:.1} (BIC start) vs {:.1} (per-frame start)", fitted.posterior.elbo, other.posterior.elbo);
-        let agree = map_structure(&other.posterior) == map_structure(&fitted.posterior);
-        let warm_next = WarmStart { bic: fitted.guide.clone(), per_frame: (!agree).then(|| other.guide.clone()) };
+    let cores = parallel::Cores::new(threads, starts.len());
+    let fits: Vec<Option<Fitted>> = std::thread::scope(|s| {
+        let handles: Vec<_> = starts[1..]
+            .iter()
+            .map(|&(start, own)| {
+                let cores = &cores;
+                let log_w = &log_w;
+                s.spawn(move || {
+                    let fitted = fit_from(ev, model, cfg, own, log_w, start, cores);
+                    cores.give(1);
+                    fitted
+                })
+            })
+            .collect();
+        let first = fit_from(ev, model, cfg, starts[0].1, &log_w, starts[0].0, &cores);
+        cores.give(1);
+        // A panic in another start's fit is a bug: let it surface as this thread's.
+        std::iter::once(first).chain(handles.into_iter().map(|h| h.join().unwrap_or_else(|e| std::panic::resume_unwind(e)))).collect()
+    });
+    let mut fits = fits.into_iter();
+    let mut fitted = fits.next().flatten()?;
+    let mut others: Vec<Option<Fitted>> = fits.collect();
+    let runner = if runner_up.is_some() { others.pop().flatten() } else { None };
+    let per_frame_fit = if two { others.pop().flatten() } else { None };
+    let bic_structure = map_structure(&fitted.posterior);
+    let keep = |f: &Option<Fitted>| f.as_ref().filter(|f| map_structure(&f.posterior) != bic_structure).map(|f| f.guide.clone());
+    let warm_next = WarmStart { bic: fitted.guide.clone(), per_frame: keep(&per_frame_fit), runner_up: keep(&runner) };
+    tracing::debug!(
+        "starts: ELBO {:.1} (BIC){}{}",
+        fitted.posterior.elbo,
+        per_frame_fit.as_ref().map_or(String::new(), |f| format!(", {:.1} (per-frame)", f.posterior.elbo)),
+        runner.as_ref().map_or(String::new(), |f| format!(", {:.1} (runner-up)", f.posterior.elbo))
+    );
+    for other in [per_frame_fit, runner].into_iter().flatten() {
         if other.posterior.elbo > fitted.posterior.elbo {
-            fitted = Fitted { posterior: other.posterior, guide: other.guide, warm: warm_next };
-        } else {
-            fitted.warm = warm_next;
+            fitted = other;
         }
     }
+    fitted.warm = warm_next;
     fitted.posterior.runtime_s = started.elapsed().as_secs_f64();
     Some(fitted)
 }
