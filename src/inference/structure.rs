@@ -81,12 +81,13 @@ impl InitialStructure {
     pub fn runner_up(&self) -> Option<InitialStructure> {
         let n = self.parent.len();
         let edge = |i: usize, j: usize| self.parent_score[i][j] + self.log_w[i][j];
+        let total = self.tree_score();
         let mut best: Option<(f64, Vec<usize>)> = None;
         for i in (0..n).filter(|&i| !self.static_node[self.parent[i]]) {
             // Not under one of its own descendants (a static part may hang from a moving one).
             let below = descendants(&self.parent, i);
             for j in (0..=n).filter(|&j| self.static_node[j] && j != i + 1 && (j == 0 || !below.contains(&(j - 1)))) {
-                let t = self.tree_score() - edge(i, self.parent[i]) + edge(i, j);
+                let t = total - edge(i, self.parent[i]) + edge(i, j);
                 if t.is_finite() && best.as_ref().is_none_or(|(b, _)| t > *b) {
                     let mut p = self.parent.clone();
                     p[i] = j;
