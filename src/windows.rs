@@ -2,7 +2,10 @@
 //!
 //! - **Dynamic mode** (wrenches recorded): a window opens when the applied force exceeds
 //!   `force_open_n` and closes once it has stayed below `force_close_n` (hysteresis) for `hold_s`;
-//!   `margin_before_s` / `margin_after_s` extend it (the part keeps moving after release).
+//!   `margin_before_s` / `margin_after_s` extend it (the part keeps moving after release). A
+//!   lighter push — above `force_close_n` but never above `force_open_n` — opens a window too
+//!   when a part moves during it (a light door pushed with 0.8 N swings wide open): the
+//!   threshold is there to reject sensor noise, and motion under the force says it was none.
 //! - **Kinematic mode** (no wrench): windows are periods of part motion. A part moves while the
 //!   speed of its centre of mass, measured over `speed_span_s`, exceeds `speed_open_mps`; the
 //!   period ends once the speed has stayed below `speed_close_mps` for `hold_s`. Periods of all
@@ -160,11 +163,31 @@ pub fn motion_windows(tracks: &PartTracks, cfg: &WindowConfig) -> Vec<Window> {
     finish(spans, cfg, t_min, t_max)
 }
 
-/// Dynamic-mode windows: periods of applied force. `t_max` bounds the trailing margin (the
-/// last cloud stamp).
-pub fn force_windows(wrenches: &[WrenchSample], cfg: &WindowConfig, t_min: f64, t_max: f64) -> Vec<Window> {
+/// Dynamic-mode windows: periods of applied force above `force_open_n`, and periods above
+/// `force_close_n` alone during which (or within `margin_after_s` after which) some part of
+/// `tracks` moves (its speed above `speed_open_mps`, as in [`motion_windows`]). `t_max` bounds
+/// the trailing margin (the last cloud stamp).
+pub fn force_windows(wrenches: &[WrenchSample], tracks: &PartTracks, cfg: &WindowConfig, t_min: f64, t_max: f64) -> Vec<Window> {
     let signal: Vec<(f64, f64)> = wrenches.iter().map(|w| (w.stamp, w.force.norm())).collect();
-    finish(hysteresis(&signal, cfg.force_open_n, cfg.force_close_n, cfg.hold_s), cfg, t_min, t_max)
+    let mut spans = hysteresis(&signal, cfg.force_open_n, cfg.force_close_n, cfg.hold_s);
+    if cfg.force_close_n < cfg.force_open_n {
+        let overlaps = |a: (f64, f64), b: (f64, f64)| a.0 <= b.1 && b.0 <= a.1;
+        let light: Vec<(f64, f64)> = hysteresis(&signal, cfg.force_close_n, cfg.force_close_n, cfg.hold_s)
+            .into_iter()
+            .filter(|&l| !spans.iter().any(|&s| overlaps(l, s)))
+            .collect();
+        if !light.is_empty() {
+            let moving: Vec<(f64, f64)> = tracks
+                .values()
+                .flat_map(|obs| {
+                    let track: Vec<(f64, Point3<f64>)> = obs.iter().map(|o| (o.stamp, o.com)).collect();
+                    hysteresis(&speeds(&track, cfg.speed_span_s), cfg.speed_open_mps, cfg.speed_close_mps, cfg.hold_s)
+                })
+                .collect();
+            spans.extend(light.into_iter().filter(|&l| moving.iter().any(|&m| overlaps((l.0, l.1 + cfg.margin_after_s), m))));
+        }
+    }
+    finish(spans, cfg, t_min, t_max)
 }
 
 #[cfg(test)]
@@ -183,6 +206,36 @@ mod tests {
             points: 10,
             outliers: 0,
         }
+    }
+
+    /// A light push (0.8 N: above `force_close_n`, below `force_open_n`) is a window when a
+    /// part moves under it, and sensor noise of that size on a still object is none.
+    #[test]
+    fn a_light_push_that_moves_a_part_is_a_window() {
+        let cfg = WindowConfig::default();
+        let wrenches: Vec<WrenchSample> = (0..1200)
+            .map(|i| {
+                let t = i as f64 / 200.0;
+                let f = if (2.0..3.0).contains(&t) { 0.8 } else { 0.0 };
+                WrenchSample { stamp: t, point: Point3::origin(), force: nalgebra::Vector3::new(f, 0.0, 0.0), torque: nalgebra::Vector3::zeros() }
+            })
+            .collect();
+        let track = |speed: f64| -> PartTracks {
+            let obs: Vec<PartObservation> = (0..180)
+                .map(|i| {
+                    let t = i as f64 / 30.0;
+                    obs(t, speed * (t - 2.1).clamp(0.0, 1.2))
+                })
+                .collect();
+            PartTracks::from([(1, obs)])
+        };
+        let w = force_windows(&wrenches, &track(0.2), &cfg, 0.0, 6.0);
+        assert_eq!(w.len(), 1, "{w:?}");
+        assert!((w[0].start - (2.0 - cfg.margin_before_s)).abs() < 0.01 && (w[0].end - (3.0 + cfg.margin_after_s)).abs() < 0.01, "{w:?}");
+        assert!(force_windows(&wrenches, &track(0.0), &cfg, 0.0, 6.0).is_empty());
+        // Above `force_open_n`, a push is a window whether or not anything moves.
+        let strong: Vec<WrenchSample> = wrenches.iter().map(|w| WrenchSample { force: w.force * 2.0, ..w.clone() }).collect();
+        assert_eq!(force_windows(&strong, &track(0.0), &cfg, 0.0, 6.0).len(), 1);
     }
 
     #[test]

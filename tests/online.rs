@@ -58,7 +58,13 @@ fn agree(rel: &str, closes_live: bool) {
     let want = replay.posterior.as_ref().unwrap();
     assert_eq!(fitted.posterior.joints.len(), want.joints.len());
     for (j, r) in fitted.posterior.joints.iter().zip(&want.joints) {
-        assert_eq!((j.child, j.parent, j.map_type), (r.child, r.parent, r.map_type), "{rel}");
+        assert_eq!((j.child, j.map_type), (r.child, r.map_type), "{rel}");
+        // Parts that do not move in the bag (a cabinet and the door its pushed hatch rides) can
+        // hang from one another or from the fixed frame alike: which rigid tree comes out is a
+        // tie that rounding decides.
+        if r.map_type.movable() {
+            assert_eq!(j.parent, r.parent, "{rel}: part {}", r.child);
+        }
         // The axis of a part called rigid is that of a movable type it has no evidence for (a
         // cabinet that never moves): any direction fits, so there is nothing to agree on.
         if let (Some(x), Some(y), true) = (&j.axis, &r.axis, r.map_type.movable()) {
@@ -72,6 +78,13 @@ fn agree(rel: &str, closes_live: bool) {
 #[test]
 fn streamed_dynamic_bag_agrees_with_replay() {
     agree("bags/mujoco/drawer.mcap", true);
+}
+
+/// A light push (below `windows.force_open_n`, a part moving under it) opens the same window on
+/// the same part in the node as in replay.
+#[test]
+fn streamed_light_push_agrees_with_replay() {
+    agree("bags/corpus/obj045_ep3_light_push.mcap", true);
 }
 
 #[test]

@@ -372,9 +372,9 @@ fn find_windows(rec: &Recording, tracks: &PartTracks, cfg: &Config, diag: &mut D
     let mut ws = if rec.wrenches.is_empty() {
         windows::motion_windows(tracks, &cfg.windows)
     } else {
-        let mut ws = windows::force_windows(&rec.wrenches, &cfg.windows, t_min, t_max);
+        let mut ws = windows::force_windows(&rec.wrenches, tracks, &cfg.windows, t_min, t_max);
         for w in &mut ws {
-            w.pushed_part = pushed_part(rec, w, cfg.windows.force_open_n);
+            w.pushed_part = pushed_part(rec, w, cfg.windows.force_open_n).or_else(|| pushed_part(rec, w, cfg.windows.force_close_n));
         }
         ws
     };
@@ -385,6 +385,8 @@ fn find_windows(rec: &Recording, tracks: &PartTracks, cfg: &Config, diag: &mut D
     ws
 }
 
+/// The part nearest the contact point of the first wrench sample in `w` above `threshold` \[N\]
+/// (contract section 1), in the cloud nearest that sample in time.
 fn pushed_part(rec: &Recording, w: &Window, threshold: f64) -> Option<u32> {
     let contact = rec.wrenches.iter().find(|s| w.contains(s.stamp) && s.force.norm() > threshold)?;
     let cloud: &CloudFrame = rec.clouds.iter().min_by(|a, b| (a.stamp - contact.stamp).abs().total_cmp(&(b.stamp - contact.stamp).abs()))?;

@@ -110,6 +110,8 @@ impl Held {
 #[derive(Debug, Clone)]
 struct Contact {
     stamp: f64,
+    /// A rising edge above `force_open_n` (else above `force_close_n` alone: a light push).
+    strong: bool,
     point: Point3<f64>,
     /// (|cloud stamp - contact stamp|, nearest label) of the best cloud so far.
     best: Option<(f64, u32)>,
@@ -126,6 +128,7 @@ pub struct Online {
     contacts: Vec<Contact>,
     last_cloud: Option<CloudFrame>,
     force_above: bool,
+    force_above_close: bool,
     saw_wrench: bool,
     held: VecDeque<Held>,
     /// Each input topic's clock (a stamp far ahead waits for the next message; see
@@ -161,6 +164,7 @@ impl Online {
             contacts: Vec::new(),
             last_cloud: None,
             force_above: false,
+            force_above_close: false,
             saw_wrench: false,
             held: VecDeque::new(),
             stamps: HashMap::new(),
@@ -209,11 +213,18 @@ impl Online {
 
     /// The pushes so far, for prediction: the closed windows, then each rising edge of the force
     /// since the last of them as a window open until the next edge (the last one until `+inf`),
-    /// with the part nearest its contact.
+    /// with the part nearest its contact. A light push's edge (above `force_close_n`) that the
+    /// same push follows with an edge above `force_open_n` counts once, as the latter.
     pub fn pushes(&self) -> Vec<Window> {
         let mut out = self.closed.clone();
         let after = self.closed.last().map_or(f64::NEG_INFINITY, |w| w.end);
-        let open: Vec<&Contact> = self.contacts.iter().filter(|c| c.stamp > after).collect();
+        let recent: Vec<&Contact> = self.contacts.iter().filter(|c| c.stamp > after).collect();
+        let open: Vec<&Contact> = recent
+            .iter()
+            .enumerate()
+            .filter(|&(k, c)| c.strong || !recent.get(k + 1).is_some_and(|n| n.strong))
+            .map(|(_, c)| *c)
+            .collect();
         for (k, c) in open.iter().enumerate() {
             let end = open.get(k + 1).map_or(f64::INFINITY, |n| n.stamp);
             out.push(Window { start: c.stamp, end, pushed_part: c.best.map(|(_, l)| l) });
@@ -347,15 +358,22 @@ impl Online {
     }
 
     fn add_wrench(&mut self, w: WrenchSample) {
-        let above = w.force.norm() > self.cfg.windows.force_open_n;
-        if above && !self.force_above {
-            let mut c = Contact { stamp: w.stamp, point: w.point, best: None };
-            if let Some(cloud) = &self.last_cloud {
-                c.best = perception::nearest_part(cloud, &w.point).map(|(l, _)| ((cloud.stamp - w.stamp).abs(), l));
+        let wc = &self.cfg.windows;
+        let above = w.force.norm() > wc.force_open_n;
+        let above_close = w.force.norm() > wc.force_close_n;
+        // Replay's pushed part is the nearest one at the first sample above `force_open_n` in a
+        // window, else at the first above `force_close_n` ([`crate::windows::force_windows`]).
+        for (strong, rising) in [(true, above && !self.force_above), (false, above_close && !self.force_above_close)] {
+            if rising {
+                let mut c = Contact { stamp: w.stamp, strong, point: w.point, best: None };
+                if let Some(cloud) = &self.last_cloud {
+                    c.best = perception::nearest_part(cloud, &w.point).map(|(l, _)| ((cloud.stamp - w.stamp).abs(), l));
+                }
+                self.contacts.push(c);
             }
-            self.contacts.push(c);
         }
         self.force_above = above;
+        self.force_above_close = above_close;
         self.saw_wrench = true;
         self.wrenches.push(w);
     }
@@ -385,15 +403,9 @@ impl Online {
         let t_max = self.last_cloud_stamp;
         let ws = if self.mode() == "dynamic" {
             let from = self.wrenches.partition_point(|w| w.stamp <= t_min);
-            windows::force_windows(&self.wrenches[from..], &self.cfg.windows, t_min, t_max)
+            windows::force_windows(&self.wrenches[from..], &self.tail_tracks(t_min), &self.cfg.windows, t_min, t_max)
         } else {
-            let span = self.cfg.windows.speed_span_s;
-            let tail: PartTracks = self
-                .tracks
-                .iter()
-                .map(|(l, obs)| (*l, obs[obs.partition_point(|o| o.stamp < t_min - span)..].to_vec()))
-                .collect();
-            windows::motion_windows(&tail, &self.cfg.windows)
+            windows::motion_windows(&self.tail_tracks(t_min), &self.cfg.windows)
         };
         let wc = &self.cfg.windows;
         // Nothing after `now` can extend or merge into a window that ends this long before it.
@@ -402,6 +414,12 @@ impl Online {
             .filter(|w| w.start >= t_min && w.end > w.start)
             .filter(|w| at_end || (w.end < t_max && w.end + wc.merge_gap_s + wc.margin_before_s < now))
             .collect()
+    }
+
+    /// The part tracks from `t_min` on (and the speed span before it).
+    fn tail_tracks(&self, t_min: f64) -> PartTracks {
+        let span = self.cfg.windows.speed_span_s;
+        self.tracks.iter().map(|(l, obs)| (*l, obs[obs.partition_point(|o| o.stamp < t_min - span)..].to_vec())).collect()
     }
 
     /// Close the windows that nothing later can change; returns how many closed. Call after
@@ -450,7 +468,8 @@ impl Online {
         let dynamic = self.mode() == "dynamic";
         for w in &mut new {
             if dynamic {
-                w.pushed_part = self.contacts.iter().find(|c| w.contains(c.stamp)).and_then(|c| c.best.map(|b| b.1));
+                let first = |strong: bool| self.contacts.iter().find(|c| c.strong == strong && w.contains(c.stamp));
+                w.pushed_part = first(true).or_else(|| first(false)).and_then(|c| c.best.map(|b| b.1));
             }
         }
         let n = new.len();
