@@ -17,7 +17,7 @@ use nalgebra::Point3;
 use serde::{Deserialize, Serialize};
 
 use crate::input::WrenchSample;
-use crate::perception::PartTracks;
+use crate::perception::{PartObservation, PartTracks};
 
 /// Window thresholds (`windows` section of the config).
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -148,26 +148,39 @@ fn finish(mut spans: Vec<(f64, f64)>, cfg: &WindowConfig, t_min: f64, t_max: f64
         .collect()
 }
 
+/// Periods in which one part's track (time order) moves: speed above `speed_open_mps` until it
+/// has stayed below `speed_close_mps` for `hold_s`.
+fn moving_spans(obs: &[PartObservation], cfg: &WindowConfig) -> Vec<(f64, f64)> {
+    let track: Vec<(f64, Point3<f64>)> = obs.iter().map(|o| (o.stamp, o.com)).collect();
+    hysteresis(&speeds(&track, cfg.speed_span_s), cfg.speed_open_mps, cfg.speed_close_mps, cfg.hold_s)
+}
+
 /// Kinematic-mode windows: periods in which any part moves.
 pub fn motion_windows(tracks: &PartTracks, cfg: &WindowConfig) -> Vec<Window> {
     let mut spans = Vec::new();
     let (mut t_min, mut t_max) = (f64::INFINITY, f64::NEG_INFINITY);
     for obs in tracks.values() {
-        let track: Vec<(f64, Point3<f64>)> = obs.iter().map(|o| (o.stamp, o.com)).collect();
-        if let (Some(a), Some(b)) = (track.first(), track.last()) {
-            t_min = t_min.min(a.0);
-            t_max = t_max.max(b.0);
+        if let (Some(a), Some(b)) = (obs.first(), obs.last()) {
+            t_min = t_min.min(a.stamp);
+            t_max = t_max.max(b.stamp);
         }
-        spans.extend(hysteresis(&speeds(&track, cfg.speed_span_s), cfg.speed_open_mps, cfg.speed_close_mps, cfg.hold_s));
+        spans.extend(moving_spans(obs, cfg));
     }
     finish(spans, cfg, t_min, t_max)
 }
 
 /// Dynamic-mode windows: periods of applied force above `force_open_n`, and periods above
-/// `force_close_n` alone during which (or within `margin_after_s` after which) some part of
-/// `tracks` moves (its speed above `speed_open_mps`, as in [`motion_windows`]). `t_max` bounds
+/// `force_close_n` alone during which (or within `margin_after_s` after which) some part's track
+/// of `tracks` (each in time order) moves (its speed above `speed_open_mps`, as in
+/// [`motion_windows`]); the tracks are read only when there is such a light push. `t_max` bounds
 /// the trailing margin (the last cloud stamp).
-pub fn force_windows(wrenches: &[WrenchSample], tracks: &PartTracks, cfg: &WindowConfig, t_min: f64, t_max: f64) -> Vec<Window> {
+pub fn force_windows<'a>(
+    wrenches: &[WrenchSample],
+    tracks: impl IntoIterator<Item = &'a [PartObservation]>,
+    cfg: &WindowConfig,
+    t_min: f64,
+    t_max: f64,
+) -> Vec<Window> {
     let signal: Vec<(f64, f64)> = wrenches.iter().map(|w| (w.stamp, w.force.norm())).collect();
     let mut spans = hysteresis(&signal, cfg.force_open_n, cfg.force_close_n, cfg.hold_s);
     if cfg.force_close_n < cfg.force_open_n {
@@ -177,13 +190,7 @@ pub fn force_windows(wrenches: &[WrenchSample], tracks: &PartTracks, cfg: &Windo
             .filter(|&l| !spans.iter().any(|&s| overlaps(l, s)))
             .collect();
         if !light.is_empty() {
-            let moving: Vec<(f64, f64)> = tracks
-                .values()
-                .flat_map(|obs| {
-                    let track: Vec<(f64, Point3<f64>)> = obs.iter().map(|o| (o.stamp, o.com)).collect();
-                    hysteresis(&speeds(&track, cfg.speed_span_s), cfg.speed_open_mps, cfg.speed_close_mps, cfg.hold_s)
-                })
-                .collect();
+            let moving: Vec<(f64, f64)> = tracks.into_iter().flat_map(|obs| moving_spans(obs, cfg)).collect();
             spans.extend(light.into_iter().filter(|&l| moving.iter().any(|&m| overlaps((l.0, l.1 + cfg.margin_after_s), m))));
         }
     }
@@ -220,22 +227,21 @@ mod tests {
                 WrenchSample { stamp: t, point: Point3::origin(), force: nalgebra::Vector3::new(f, 0.0, 0.0), torque: nalgebra::Vector3::zeros() }
             })
             .collect();
-        let track = |speed: f64| -> PartTracks {
-            let obs: Vec<PartObservation> = (0..180)
+        let track = |speed: f64| -> Vec<PartObservation> {
+            (0..180)
                 .map(|i| {
                     let t = i as f64 / 30.0;
                     obs(t, speed * (t - 2.1).clamp(0.0, 1.2))
                 })
-                .collect();
-            PartTracks::from([(1, obs)])
+                .collect()
         };
-        let w = force_windows(&wrenches, &track(0.2), &cfg, 0.0, 6.0);
+        let w = force_windows(&wrenches, [track(0.2).as_slice()], &cfg, 0.0, 6.0);
         assert_eq!(w.len(), 1, "{w:?}");
         assert!((w[0].start - (2.0 - cfg.margin_before_s)).abs() < 0.01 && (w[0].end - (3.0 + cfg.margin_after_s)).abs() < 0.01, "{w:?}");
-        assert!(force_windows(&wrenches, &track(0.0), &cfg, 0.0, 6.0).is_empty());
+        assert!(force_windows(&wrenches, [track(0.0).as_slice()], &cfg, 0.0, 6.0).is_empty());
         // Above `force_open_n`, a push is a window whether or not anything moves.
         let strong: Vec<WrenchSample> = wrenches.iter().map(|w| WrenchSample { force: w.force * 2.0, ..w.clone() }).collect();
-        assert_eq!(force_windows(&strong, &track(0.0), &cfg, 0.0, 6.0).len(), 1);
+        assert_eq!(force_windows(&strong, [track(0.0).as_slice()], &cfg, 0.0, 6.0).len(), 1);
     }
 
     #[test]

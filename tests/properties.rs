@@ -133,7 +133,7 @@ proptest! {
             prop_assert!(ws.windows(2).all(|p| p[0].end < p[1].start), "{:?}", ws);
             Ok(())
         };
-        check(&force_windows(&wrenches, &bom::perception::PartTracks::new(), &cfg, 0.0, 60.0), 0.0, 60.0)?;
+        check(&force_windows(&wrenches, [], &cfg, 0.0, 60.0), 0.0, 60.0)?;
         let track: Vec<_> = samples
             .iter()
             .map(|&(t, x)| bom::perception::PartObservation {
@@ -153,7 +153,7 @@ proptest! {
         if !shuffle {
             check(&ws, lo, hi)?;
             // Light pushes (between the two force thresholds) under which the track moves.
-            check(&force_windows(&wrenches, &tracks, &cfg, 0.0, 60.0), 0.0, 60.0)?;
+            check(&force_windows(&wrenches, tracks.values().map(Vec::as_slice), &cfg, 0.0, 60.0), 0.0, 60.0)?;
         }
     }
 

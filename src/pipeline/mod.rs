@@ -372,7 +372,7 @@ fn find_windows(rec: &Recording, tracks: &PartTracks, cfg: &Config, diag: &mut D
     let mut ws = if rec.wrenches.is_empty() {
         windows::motion_windows(tracks, &cfg.windows)
     } else {
-        let mut ws = windows::force_windows(&rec.wrenches, tracks, &cfg.windows, t_min, t_max);
+        let mut ws = windows::force_windows(&rec.wrenches, tracks.values().map(Vec::as_slice), &cfg.windows, t_min, t_max);
         for w in &mut ws {
             w.pushed_part = pushed_part(rec, w, cfg.windows.force_open_n).or_else(|| pushed_part(rec, w, cfg.windows.force_close_n));
         }

@@ -403,9 +403,17 @@ impl Online {
         let t_max = self.last_cloud_stamp;
         let ws = if self.mode() == "dynamic" {
             let from = self.wrenches.partition_point(|w| w.stamp <= t_min);
-            windows::force_windows(&self.wrenches[from..], &self.tail_tracks(t_min), &self.cfg.windows, t_min, t_max)
+            let span = self.cfg.windows.speed_span_s;
+            let tails = self.tracks.values().map(|obs| &obs[obs.partition_point(|o| o.stamp < t_min - span)..]);
+            windows::force_windows(&self.wrenches[from..], tails, &self.cfg.windows, t_min, t_max)
         } else {
-            windows::motion_windows(&self.tail_tracks(t_min), &self.cfg.windows)
+            let span = self.cfg.windows.speed_span_s;
+            let tail: PartTracks = self
+                .tracks
+                .iter()
+                .map(|(l, obs)| (*l, obs[obs.partition_point(|o| o.stamp < t_min - span)..].to_vec()))
+                .collect();
+            windows::motion_windows(&tail, &self.cfg.windows)
         };
         let wc = &self.cfg.windows;
         // Nothing after `now` can extend or merge into a window that ends this long before it.
@@ -414,12 +422,6 @@ impl Online {
             .filter(|w| w.start >= t_min && w.end > w.start)
             .filter(|w| at_end || (w.end < t_max && w.end + wc.merge_gap_s + wc.margin_before_s < now))
             .collect()
-    }
-
-    /// The part tracks from `t_min` on (and the speed span before it).
-    fn tail_tracks(&self, t_min: f64) -> PartTracks {
-        let span = self.cfg.windows.speed_span_s;
-        self.tracks.iter().map(|(l, obs)| (*l, obs[obs.partition_point(|o| o.stamp < t_min - span)..].to_vec())).collect()
     }
 
     /// Close the windows that nothing later can change; returns how many closed. Call after
