@@ -17,7 +17,7 @@ use nalgebra::Point3;
 use serde::{Deserialize, Serialize};
 
 use crate::input::WrenchSample;
-use crate::perception::{PartObservation, PartTracks};
+use crate::perception::PartObservation;
 
 /// Window thresholds (`windows` section of the config).
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -155,11 +155,12 @@ fn moving_spans(obs: &[PartObservation], cfg: &WindowConfig) -> Vec<(f64, f64)> 
     hysteresis(&speeds(&track, cfg.speed_span_s), cfg.speed_open_mps, cfg.speed_close_mps, cfg.hold_s)
 }
 
-/// Kinematic-mode windows: periods in which any part moves.
-pub fn motion_windows(tracks: &PartTracks, cfg: &WindowConfig) -> Vec<Window> {
+/// Kinematic-mode windows: periods in which any of `tracks` (each one part's, in time order)
+/// moves.
+pub fn motion_windows<'a>(tracks: impl IntoIterator<Item = &'a [PartObservation]>, cfg: &WindowConfig) -> Vec<Window> {
     let mut spans = Vec::new();
     let (mut t_min, mut t_max) = (f64::INFINITY, f64::NEG_INFINITY);
-    for obs in tracks.values() {
+    for obs in tracks {
         if let (Some(a), Some(b)) = (obs.first(), obs.last()) {
             t_min = t_min.min(a.stamp);
             t_max = t_max.max(b.stamp);
@@ -200,7 +201,7 @@ pub fn force_windows<'a>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::perception::PartObservation;
+    use crate::perception::PartTracks;
 
     fn obs(t: f64, x: f64) -> PartObservation {
         PartObservation {
@@ -256,7 +257,7 @@ mod tests {
         let mut tracks = PartTracks::new();
         tracks.insert(1, track);
         let cfg = WindowConfig::default();
-        let w = motion_windows(&tracks, &cfg);
+        let w = motion_windows(tracks.values().map(Vec::as_slice), &cfg);
         assert_eq!(w.len(), 1, "{w:?}");
         // Motion from 2 s to 4 s; the margins around it.
         assert!((w[0].start - (2.0 - cfg.margin_before_s)).abs() < 0.15 && (w[0].end - (4.0 + cfg.margin_after_s)).abs() < 0.2, "{w:?}");

@@ -148,12 +148,11 @@ proptest! {
             })
             .collect();
         let (lo, hi) = samples.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), s| (a.min(s.0), b.max(s.0)));
-        let tracks = [(1u32, track)].into_iter().collect();
-        let ws = motion_windows(&tracks, &cfg);
+        let ws = motion_windows([track.as_slice()], &cfg);
         if !shuffle {
             check(&ws, lo, hi)?;
             // Light pushes (between the two force thresholds) under which the track moves.
-            check(&force_windows(&wrenches, tracks.values().map(Vec::as_slice), &cfg, 0.0, 60.0), 0.0, 60.0)?;
+            check(&force_windows(&wrenches, [track.as_slice()], &cfg, 0.0, 60.0), 0.0, 60.0)?;
         }
     }
 

@@ -370,7 +370,7 @@ fn find_windows(rec: &Recording, tracks: &PartTracks, cfg: &Config, diag: &mut D
     let t_min = rec.clouds.first().map(|c| c.stamp).unwrap_or(0.0);
     let t_max = rec.clouds.last().map(|c| c.stamp).unwrap_or(0.0);
     let mut ws = if rec.wrenches.is_empty() {
-        windows::motion_windows(tracks, &cfg.windows)
+        windows::motion_windows(tracks.values().map(Vec::as_slice), &cfg.windows)
     } else {
         let mut ws = windows::force_windows(&rec.wrenches, tracks.values().map(Vec::as_slice), &cfg.windows, t_min, t_max);
         for w in &mut ws {

@@ -401,19 +401,14 @@ impl Online {
         }
         let t_min = self.tail_start();
         let t_max = self.last_cloud_stamp;
+        // Each track from one speed span before `t_min`, so that speeds at `t_min` are measured.
+        let span = self.cfg.windows.speed_span_s;
+        let tails = self.tracks.values().map(|obs| &obs[obs.partition_point(|o| o.stamp < t_min - span)..]);
         let ws = if self.mode() == "dynamic" {
             let from = self.wrenches.partition_point(|w| w.stamp <= t_min);
-            let span = self.cfg.windows.speed_span_s;
-            let tails = self.tracks.values().map(|obs| &obs[obs.partition_point(|o| o.stamp < t_min - span)..]);
             windows::force_windows(&self.wrenches[from..], tails, &self.cfg.windows, t_min, t_max)
         } else {
-            let span = self.cfg.windows.speed_span_s;
-            let tail: PartTracks = self
-                .tracks
-                .iter()
-                .map(|(l, obs)| (*l, obs[obs.partition_point(|o| o.stamp < t_min - span)..].to_vec()))
-                .collect();
-            windows::motion_windows(&tail, &self.cfg.windows)
+            windows::motion_windows(tails, &self.cfg.windows)
         };
         let wc = &self.cfg.windows;
         // Nothing after `now` can extend or merge into a window that ends this long before it.
