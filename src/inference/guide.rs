@@ -252,8 +252,8 @@ pub fn init_block(ev: &Evidence, i: usize, joint: JointType, pre: &[Displacement
             // of its centre of mass.
             let rots: Option<Vec<nalgebra::Matrix3<f64>>> = seen.iter().map(|(t, _)| part.rot[*t].as_ref().map(|r| inv[*t].r * r.r)).collect();
             let (v, q) = rots
-                .and_then(|r| crate::model::revolute::init_from_rotations(&track, &r, &part.com0, model))
-                .unwrap_or_else(|| crate::model::revolute::init(&track, &part.com0, model));
+                .and_then(|r| crate::model::revolute::init_from_rotations(&track, &r, &part.com0, part.reach, model))
+                .unwrap_or_else(|| crate::model::revolute::init(&track, &part.com0, part.reach, model));
             mu[crate::model::rigid::NUM_PARAMS..].copy_from_slice(&v);
             q
         }

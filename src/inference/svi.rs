@@ -1442,7 +1442,9 @@ mod tests {
     /// The dual-number gradient of a block's log-likelihood matches central finite differences.
     #[test]
     fn block_gradient_matches_finite_differences() {
-        let model = ModelConfig::default();
+        // A hinge-reach margin small enough for the revolute's test axis to lie beyond it, so
+        // that the reach prior's gradient is checked in the block too.
+        let model = ModelConfig { hinge_reach_m: 0.01, ..ModelConfig::default() };
         let k = 12;
         let obs = (0..k)
             .map(|t| {
@@ -1467,6 +1469,7 @@ mod tests {
                 rot,
                 disp: vec![None; k],
                 radius: 0.2,
+                reach: 0.02,
                 unit_inertia: Matrix3::identity() * 0.01,
                 volume: 0.001,
             }],
@@ -1479,7 +1482,11 @@ mod tests {
             let np = joint.num_params();
             let xi: Vec<f64> = (0..np).map(|j| 0.3 * ((j as f64) * 1.7).sin() + if j == 5 { 2.0 } else { 0.0 }).collect();
             let q: Vec<f64> = (0..k).map(|t| 0.04 * t as f64).collect();
-            let (_, gx, gq) = block_pass(&ev, 0, joint, &xi, &q, &pre, &[], &model);
+            let (l, gx, gq) = block_pass(&ev, 0, joint, &xi, &q, &pre, &[], &model);
+            if joint == JointType::Revolute {
+                let off = ModelConfig { hinge_reach_m: 0.0, ..model.clone() };
+                assert!(block_pass(&ev, 0, joint, &xi, &q, &pre, &[], &off).0 > l + 1e-3, "the reach prior is not active");
+            }
             let h = 1e-6;
             for j in 0..np {
                 let (mut a, mut b) = (xi.clone(), xi.clone());

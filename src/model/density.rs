@@ -106,7 +106,8 @@ pub struct Member {
 /// respect to that block's standardised parameters and coordinates, from dual numbers.
 ///
 /// `pre[t]` is the parent's displacement at frame `t`; `subtree` the descendants relative to
-/// part `i`'s frame. Rotations, where observable, add their likelihood.
+/// part `i`'s frame. Rotations, where observable, add their likelihood; a revolute joint adds
+/// the prior that its axis reaches the part ([`crate::model::revolute::reach_prior`]).
 #[allow(clippy::too_many_arguments)]
 pub fn block_pass(
     ev: &Evidence,
@@ -151,6 +152,17 @@ pub fn block_pass(
                 gx[j] += e[j];
             }
             gq[t] = e[Q_SLOT];
+        }
+    }
+    if joint == JointType::Revolute {
+        // The axis must reach the part it carries (a prior on the axis, counted here with the
+        // kinematic parameters' other non-analytic terms).
+        let lp = crate::model::revolute::reach_prior(&p, &ev.parts[i].com0, ev.parts[i].reach, cfg);
+        l += lp.re;
+        if let Some(e) = lp.eps.0 {
+            for j in 0..np {
+                gx[j] += e[j];
+            }
         }
     }
     (l, gx, gq)

@@ -56,6 +56,9 @@ pub struct PartSeries {
     pub disp: Vec<Option<Isometry3<f64>>>,
     /// Root-mean-square radius of the part about its centre of mass \[m\].
     pub radius: f64,
+    /// Extent of the part: the 98th percentile of its model points' distances from `com0` \[m\]
+    /// (a percentile, so that a few stray points do not set it); 0 when unknown.
+    pub reach: f64,
     /// Rotational inertia about the centre of mass per kilogram (m²), fixed frame, reference
     /// configuration; and the hull volume (m³, 0 when flat).
     pub unit_inertia: Matrix3<f64>,
@@ -263,6 +266,7 @@ impl Evidence {
                 poses[i] = Some(o.pose);
             }
             models.push(&geo.points);
+            tracing::trace!("part {label}: com0 {:.3?}, reach {:.3} m, rms radius {:.3} m", geo.com.as_slice(), reach(&geo.points, &geo.com), geo.radius);
             parts.push(PartSeries {
                 label,
                 com0: geo.com,
@@ -270,6 +274,7 @@ impl Evidence {
                 rot,
                 disp: poses,
                 radius: geo.radius.max(1e-3),
+                reach: reach(&geo.points, &geo.com),
                 unit_inertia: geo.unit_inertia,
                 volume: geo.volume,
             });
@@ -404,6 +409,16 @@ pub fn log_likelihood_position<T: Real>(o: &PositionObs, x: &Vector3<T>, sigma: 
         hld += var.ln() * 0.5;
     }
     log_student(m2, hld, 3, nu)
+}
+
+/// The 98th percentile of the distances of `points` from `centre` \[m\]; 0 for no points.
+fn reach(points: &[Vector3<f64>], centre: &Vector3<f64>) -> f64 {
+    let mut d: Vec<f64> = points.iter().map(|p| (p - centre).norm()).filter(|x| x.is_finite()).collect();
+    if d.is_empty() {
+        return 0.0;
+    }
+    d.sort_by(|a, b| a.total_cmp(b));
+    d[((d.len() - 1) as f64 * 0.98).round() as usize]
 }
 
 /// Log-likelihood of a part's observed rotation given its predicted rotation `r` (fixed frame):

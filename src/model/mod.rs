@@ -122,6 +122,9 @@ pub struct ModelConfig {
     pub window_reset_sd_m: f64,
     /// Minimum effective radius of a revolute joint, so `angle = path / radius` stays finite \[m\].
     pub min_radius_m: f64,
+    /// How far beyond the part's own extent a revolute axis may pass before its prior falls, and
+    /// the scale of that fall \[m\] ([`revolute::reach_prior`]); 0: off.
+    pub hinge_reach_m: f64,
     /// Prior probabilities of rigid, prismatic, revolute.
     pub type_prior: [f64; 3],
     /// Contact prior on trees ([`tree`]): the contact area the fixed frame counts as, and the
@@ -148,6 +151,7 @@ impl Default for ModelConfig {
             window_reset_prob: 0.0,
             window_reset_sd_m: 0.01,
             min_radius_m: 0.02,
+            hinge_reach_m: 0.05,
             type_prior: [1.0 / 3.0; 3],
             contact_world_m2: 0.0002,
             contact_min_m2: 1e-5,
