@@ -266,7 +266,8 @@ impl Evidence {
                 poses[i] = Some(o.pose);
             }
             models.push(&geo.points);
-            tracing::trace!("part {label}: com0 {:.3?}, reach {:.3} m, rms radius {:.3} m", geo.com.as_slice(), reach(&geo.points, &geo.com), geo.radius);
+            let extent = reach(&geo.points, &geo.com);
+            tracing::trace!("part {label}: com0 {:.3?}, reach {extent:.3} m, rms radius {:.3} m", geo.com.as_slice(), geo.radius);
             parts.push(PartSeries {
                 label,
                 com0: geo.com,
@@ -274,7 +275,7 @@ impl Evidence {
                 rot,
                 disp: poses,
                 radius: geo.radius.max(1e-3),
-                reach: reach(&geo.points, &geo.com),
+                reach: extent,
                 unit_inertia: geo.unit_inertia,
                 volume: geo.volume,
             });
