@@ -53,29 +53,35 @@ pub(super) fn displacement<T: Real>(p: &JointParams<T>, q: T) -> Displacement<T>
 /// registration picked up a persistent 2.6 degree turn, called revolute about an axis 1.2 m from
 /// it at P = 0.99).
 pub fn reach_prior<T: Real>(p: &JointParams<T>, com0: &Vector3<f64>, reach: f64, cfg: &ModelConfig) -> T {
-    let m = cfg.hinge_reach_m;
-    if m <= 0.0 || reach < 2.0 * m {
+    let Some(bound) = reach_bound(reach, cfg) else {
         return c(0.0);
-    }
+    };
     let rel = com0.map(c::<T>) - p.point;
     let along = rel.dot(&p.direction);
     let perp = rel - p.direction * along;
     let dist = (perp.dot(&perp) + c::<T>(1e-12)).sqrt();
-    let excess = dist - c::<T>(reach + m);
+    let excess = dist - c::<T>(bound);
     if excess.re() <= 0.0 {
         return c(0.0);
     }
-    let z = excess / c::<T>(m);
+    let z = excess / c::<T>(cfg.hinge_reach_m);
     -(z * z) * c::<T>(0.5)
+}
+
+/// The distance from `com0` within which [`reach_prior`] costs nothing, `reach + hinge_reach_m`
+/// \[m\]; `None` where the prior does not apply (switched off, or a part smaller than twice the
+/// margin).
+fn reach_bound(reach: f64, cfg: &ModelConfig) -> Option<f64> {
+    let m = cfg.hinge_reach_m;
+    (m > 0.0 && reach >= 2.0 * m).then_some(reach + m)
 }
 
 /// How far from `com0` an initial axis point may be \[m\]: 3 prior sd, and no farther than the
 /// part's `reach` plus `hinge_reach_m` where [`reach_prior`] applies (a start outside it would
 /// spend the fit's first steps walking the axis in).
 pub fn init_max_offset(reach: f64, cfg: &ModelConfig) -> f64 {
-    let m = cfg.hinge_reach_m;
     let prior = 3.0 * cfg.axis_point_sd_m;
-    if m > 0.0 && reach >= 2.0 * m { prior.min(reach + m) } else { prior }
+    reach_bound(reach, cfg).map_or(prior, |b| prior.min(b))
 }
 
 /// Initial standardised axis parameters and path-length coordinates from a centre-of-mass track
