@@ -76,6 +76,42 @@ fn reach_bound(reach: f64, cfg: &ModelConfig) -> Option<f64> {
     (m > 0.0 && reach >= 2.0 * m).then_some(reach + m)
 }
 
+/// The coordinate \[m of path\] of a revolute joint that best explains part of an observed
+/// rotation `o` (fixed frame, since the reference configuration), with its variance \[m²\]:
+/// the joint angle `theta = q / radius` at which the predicted rotation `pre.r * R(d, theta)`
+/// (`pre`: the parent's displacement at this frame) comes closest to `o.r` in the rotation
+/// likelihood's metric ([`super::likelihood::log_likelihood_rotation`]: per observable axis `u`,
+/// variance `var_u + rot_noise^2`), by Gauss-Newton steps from `q0`. `None` for a joint that is
+/// not revolute or a rotation that says nothing about the angle (no observable axis along the
+/// joint's axis in the fixed frame).
+///
+/// Why: a revolute part's rotation measures its angle directly, while its centre of mass measures
+/// it only through the radius (a door's centre is 0.2-0.3 m from its hinge, a lid's or a latch's
+/// less); the kinematic likelihood (eq. 2) uses both, and the collapsed kinodynamic fit's observed
+/// coordinates ([`crate::inference::svi`]) take this with the centre's.
+pub fn rotation_coordinate(p: &JointParams<f64>, pre: &Displacement<f64>, o: &super::likelihood::RotationObs, q0: f64) -> Option<(f64, f64)> {
+    if p.joint != super::JointType::Revolute || !(p.radius > 0.0) {
+        return None;
+    }
+    let axis = pre.r * p.direction;
+    let s2 = p.rot_noise * p.rot_noise;
+    let info: f64 = o.axes.iter().map(|(u, v)| axis.dot(u).powi(2) / (v + s2)).sum();
+    // Less than the information of one axis at 1 rad of sd: the rotation does not see the angle.
+    if !(info > 1.0) {
+        return None;
+    }
+    let mut theta = q0 / p.radius;
+    for _ in 0..3 {
+        // Error rotation `e = r R_obs^T` as in the likelihood; to first order it turns by `axis`
+        // per radian of `theta`.
+        let e = pre.r * rotation(&p.direction, theta) * o.r.transpose();
+        let w = Vector3::new(e[(2, 1)] - e[(1, 2)], e[(0, 2)] - e[(2, 0)], e[(1, 0)] - e[(0, 1)]) * 0.5;
+        let g: f64 = o.axes.iter().map(|(u, v)| axis.dot(u) * w.dot(u) / (v + s2)).sum();
+        theta -= g / info;
+    }
+    theta.is_finite().then(|| (theta * p.radius, p.radius * p.radius / info))
+}
+
 /// How far from `com0` an initial axis point may be \[m\]: 3 prior sd, and no farther than the
 /// part's `reach` plus `hinge_reach_m` where [`reach_prior`] applies (a start outside it would
 /// spend the fit's first steps walking the axis in).
@@ -230,6 +266,52 @@ mod tests {
             let fd = (prior(&a, 0.35) - prior(&b, 0.35)) / (2.0 * h);
             assert!((eps[j] - fd).abs() < 1e-4 * (1.0 + fd.abs()), "d/dxi[{j}]: dual {} fd {fd}", eps[j]);
         }
+    }
+
+    /// The coordinate read from a rotation recovers the joint's angle under a turned parent,
+    /// ignores a turn about another axis, weighs the observable axes by their variances, and
+    /// says nothing where no observable axis sees the joint's.
+    #[test]
+    fn a_rotation_measures_the_revolute_coordinate() {
+        use super::super::likelihood::RotationObs;
+        use super::super::JointType;
+        let cfg = ModelConfig::default();
+        let com0 = Vector3::new(0.3, 0.1, 0.5);
+        // A hinge tilted from the vertical, 0.25 m from the centre of mass.
+        let xi = [0.0, 0.0, 0.0, 0.0, 0.0, 0.2, -0.1, 3.0, -0.25 / cfg.axis_point_sd_m, 0.0, 0.0];
+        let p = super::super::decode::<f64>(JointType::Revolute, &xi, &com0, &cfg);
+        let pre = Displacement { r: rotation(&Vector3::new(1.0, 0.0, 0.0), 0.3), t: Vector3::new(0.0, 0.02, 0.0) };
+        let q = 0.4 * p.radius;
+        let axis = pre.r * p.direction;
+        // Observed: the joint's rotation, then 0.05 rad about a direction off the joint's axis.
+        let off = axis.cross(&Vector3::new(0.0, 1.0, 0.0)).normalize();
+        let r_obs = rotation(&off, 0.05) * pre.r * rotation(&p.direction, 0.4);
+        let axes: Vec<(Vector3<f64>, f64)> = [Vector3::x(), Vector3::y(), Vector3::z()].into_iter().zip([1e-4, 4e-4, 2.5e-5]).collect();
+        // Without the off-axis turn the angle comes back exactly.
+        let exact = RotationObs { r: pre.r * rotation(&p.direction, 0.4), axes: axes.clone() };
+        let (qr, _) = rotation_coordinate(&p, &pre, &exact, 0.0).expect("the rotation sees the hinge");
+        assert!((qr - q).abs() < 1e-9, "q {qr} against {q}");
+        // With it, the coordinate minimises the likelihood's quadratic form (its derivative is 0).
+        let o = RotationObs { r: r_obs, axes: axes.clone() };
+        let (qr, var) = rotation_coordinate(&p, &pre, &o, 0.0).expect("the rotation sees the hinge");
+        assert!((qr - q).abs() < 0.02 * p.radius, "q {qr} against {q}");
+        let s2 = p.rot_noise * p.rot_noise;
+        let form = |q: f64| {
+            let e = pre.r * rotation(&p.direction, q / p.radius) * r_obs.transpose();
+            let w = Vector3::new(e[(2, 1)] - e[(1, 2)], e[(0, 2)] - e[(2, 0)], e[(1, 0)] - e[(0, 1)]) * 0.5;
+            axes.iter().map(|(u, v)| w.dot(u).powi(2) / (v + s2)).sum::<f64>()
+        };
+        let h = 1e-6;
+        let slope = (form(qr + h) - form(qr - h)) / (2.0 * h);
+        assert!(slope.abs() < 1e-3 * (form(qr + 0.01) - form(qr)).abs() / 0.01, "slope {slope}");
+        let info: f64 = axes.iter().map(|(u, v)| axis.dot(u).powi(2) / (v + s2)).sum();
+        assert!((var - p.radius * p.radius / info).abs() < 1e-12 * var.max(1.0));
+        // Only an axis perpendicular to the joint's observable: nothing about the angle.
+        let o = RotationObs { r: r_obs, axes: vec![(off, 1e-4)] };
+        assert!(rotation_coordinate(&p, &pre, &o, 0.0).is_none());
+        // A prismatic joint's rotation does not move with its coordinate.
+        let pp = super::super::decode::<f64>(JointType::Prismatic, &xi[..JointType::Prismatic.num_params()], &com0, &cfg);
+        assert!(rotation_coordinate(&pp, &pre, &RotationObs { r: r_obs, axes }, 0.0).is_none());
     }
 
     #[test]

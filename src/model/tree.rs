@@ -129,6 +129,19 @@ pub fn descendants(parent: &[usize], i: usize) -> Vec<usize> {
         .collect()
 }
 
+/// The parts above part `i` in the tree `parent` (as [`descendants`]), nearest first, as part
+/// indices; a chain that does not reach the fixed frame (not a tree) stops where it returns to
+/// `i` or after `parent.len()` steps.
+pub fn ancestors(parent: &[usize], i: usize) -> Vec<usize> {
+    let mut out = Vec::new();
+    let mut node = parent.get(i).copied().unwrap_or(0);
+    while node != 0 && node != i + 1 && node <= parent.len() && out.len() < parent.len() {
+        out.push(node - 1);
+        node = parent[node - 1];
+    }
+    out
+}
+
 /// Every part's displacement from its reference configuration at each of `frames` frames in the
 /// tree `parent`: its parent's composed with its own joint's, `joint(part, frame)`. A part whose
 /// chain does not reach the fixed frame (not a tree) keeps the identity.
@@ -344,6 +357,21 @@ pub fn parent_marginals<R: Rng>(logits: &[Vec<f64>], samples: usize, rng: &mut R
 mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
+
+    /// Ancestors come nearest first and stop at the fixed frame; a cycle (not a tree) ends.
+    #[test]
+    fn ancestors_walk_up_to_the_fixed_frame() {
+        // Part 0 on the fixed frame, 1 on 0, 2 on 1, 3 on the fixed frame.
+        let parent = [0, 1, 2, 0];
+        assert_eq!(ancestors(&parent, 2), vec![1, 0]);
+        assert_eq!(ancestors(&parent, 0), Vec::<usize>::new());
+        assert_eq!(ancestors(&parent, 3), Vec::<usize>::new());
+        for a in ancestors(&parent, 2) {
+            assert!(descendants(&parent, a).contains(&2));
+        }
+        // 0 on 1 and 1 on 0: the walk stops when it returns.
+        assert_eq!(ancestors(&[2, 1], 0), vec![1]);
+    }
 
     #[test]
     fn always_samples_trees_and_follows_the_logits() {
