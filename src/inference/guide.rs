@@ -300,8 +300,7 @@ fn residual_rms(ev: &Evidence, i: usize, p: &JointParams<f64>, q: &[f64], pre: &
             cnt += 1.0;
         }
         if let Some(o) = &part.rot[t] {
-            let e = d.r * o.r.transpose();
-            let w = Vector3::new(e[(2, 1)] - e[(1, 2)], e[(0, 2)] - e[(2, 0)], e[(1, 0)] - e[(0, 1)]) * 0.5;
+            let w = o.error(&d.r);
             for (a, _) in &o.axes {
                 rs += w.dot(a).powi(2);
                 rc += 1.0;

@@ -38,6 +38,16 @@ pub struct RotationObs {
     pub axes: Vec<(Vector3<f64>, f64)>,
 }
 
+impl RotationObs {
+    /// The error of a predicted rotation `r` (fixed frame) against the observed one, to first
+    /// order: the vector \[rad\] of the skew part of `e = r R_obs^T`, the quantity
+    /// [`log_likelihood_rotation`] projects on each observable axis.
+    pub fn error(&self, r: &Matrix3<f64>) -> Vector3<f64> {
+        let e = r * self.r.transpose();
+        Vector3::new(e[(2, 1)] - e[(1, 2)], e[(0, 2)] - e[(2, 0)], e[(1, 0)] - e[(0, 1)]) * 0.5
+    }
+}
+
 /// One part's observations on the grid.
 #[derive(Debug, Clone)]
 pub struct PartSeries {

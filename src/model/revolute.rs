@@ -102,10 +102,8 @@ pub fn rotation_coordinate(p: &JointParams<f64>, pre: &Displacement<f64>, o: &su
     }
     let mut theta = q0 / p.radius;
     for _ in 0..3 {
-        // Error rotation `e = r R_obs^T` as in the likelihood; to first order it turns by `axis`
-        // per radian of `theta`.
-        let e = pre.r * rotation(&p.direction, theta) * o.r.transpose();
-        let w = Vector3::new(e[(2, 1)] - e[(1, 2)], e[(0, 2)] - e[(2, 0)], e[(1, 0)] - e[(0, 1)]) * 0.5;
+        // The error as in the likelihood; to first order it turns by `axis` per radian of `theta`.
+        let w = o.error(&(pre.r * rotation(&p.direction, theta)));
         let g: f64 = o.axes.iter().map(|(u, v)| axis.dot(u) * w.dot(u) / (v + s2)).sum();
         theta -= g / info;
     }
@@ -297,8 +295,7 @@ mod tests {
         assert!((qr - q).abs() < 0.02 * p.radius, "q {qr} against {q}");
         let s2 = p.rot_noise * p.rot_noise;
         let form = |q: f64| {
-            let e = pre.r * rotation(&p.direction, q / p.radius) * r_obs.transpose();
-            let w = Vector3::new(e[(2, 1)] - e[(1, 2)], e[(0, 2)] - e[(2, 0)], e[(1, 0)] - e[(0, 1)]) * 0.5;
+            let w = o.error(&(pre.r * rotation(&p.direction, q / p.radius)));
             axes.iter().map(|(u, v)| w.dot(u).powi(2) / (v + s2)).sum::<f64>()
         };
         let h = 1e-6;
