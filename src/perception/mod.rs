@@ -290,6 +290,21 @@ impl Perception {
                 sc.spawn(move || refine_part(state, obs, cfg));
             }
         });
+        // The registered tracks, one line a frame (`BOM_LOG=bom::perception=trace`): what the
+        // likelihood is given, to be checked against a recorder's true joint positions.
+        if tracing::enabled!(tracing::Level::TRACE) {
+            for (label, obs) in tracks.iter() {
+                let Some(state) = self.parts.get(label) else { continue };
+                for o in obs {
+                    let (axis, angle) = o.pose.rotation.axis_angle().map_or((Vector3::x(), 0.0), |(a, t)| (a.into_inner(), t));
+                    let shift = o.com.coords - state.anchor;
+                    tracing::trace!(
+                        "part {label} at {:.3} s: rotation {angle:.4} rad about [{:.3}, {:.3}, {:.3}], anchor moved [{:.4}, {:.4}, {:.4}] m",
+                        o.stamp, axis.x, axis.y, axis.z, shift.x, shift.y, shift.z
+                    );
+                }
+            }
+        }
     }
 
     /// Geometry of every part seen so far, from its current model.
