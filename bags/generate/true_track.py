@@ -39,15 +39,16 @@ def main(argv=None):
     render = rec.cloud
 
     def cloud():
-        positions.append(float(rec.data.qpos[adr]))
+        # The simulation time of each cloud, from the first one (recorded at the bag's t0).
+        positions.append((float(rec.data.time), float(rec.data.qpos[adr])))
         return render()
 
     rec.cloud = cloud
     # The recorder's own report goes to stderr; the bag it writes is thrown away.
     with contextlib.redirect_stdout(sys.stderr):
         rec.record(os.devnull, interactions, declared=True, t0=1.0)
-    for k, q in enumerate(positions):
-        print(f"{1.0 + k / rec.CLOUD_HZ:.3f} {q:.6f}")
+    for t, q in positions:
+        print(f"{1.0 + t - positions[0][0]:.3f} {q:.6f}")
 
 
 if __name__ == "__main__":
