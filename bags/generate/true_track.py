@@ -6,17 +6,27 @@ against perception's registered track (`BOM_LOG=info,bom::perception=trace bom r
     MUJOCO_GL=egl .venv-gen/bin/python bags/generate/true_track.py --corpus corpus obj060_procedural slider1_slide
 
 Joint names are the recorder's (`door1_hinge`, `slider1_slide`, ...; `corpus.py` prints them).
+
+With `--trace LOG --label L` (LOG: the stderr of `BOM_LOG=info,bom::perception=trace bom replay
+BAG`, L: the part's label) it prints instead how far perception's registered track of part L is
+from the joint's true motion since the first cloud: for a hinge the registered rotation angle
+against the true turn, for a slide the anchor's displacement along its largest displacement
+against the true travel (RMS and largest error over the clouds in both, and the last cloud's
+values).
 """
 import argparse
 import contextlib
 import json
+import math
 import os
+import re
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import corpus  # noqa: E402
 import record  # noqa: E402
+import mujoco  # noqa: E402  (after record, which sets up MuJoCo's environment)
 
 
 def main(argv=None):
@@ -24,7 +34,11 @@ def main(argv=None):
     ap.add_argument("--corpus", required=True)
     ap.add_argument("object")
     ap.add_argument("joint")
+    ap.add_argument("--trace", help="stderr of `BOM_LOG=info,bom::perception=trace bom replay BAG`")
+    ap.add_argument("--label", type=int, help="the part whose registered track --trace compares")
     args = ap.parse_args(argv)
+    if (args.trace is None) != (args.label is None):
+        sys.exit("error: --trace and --label go together")
     entries = {e["name"]: e for e in json.loads((Path(args.corpus) / "manifest.json").read_text())["objects"]}
     if args.object not in entries:
         sys.exit(f"error: {args.object}: not in {args.corpus}/manifest.json")
@@ -47,8 +61,48 @@ def main(argv=None):
     # The recorder's own report goes to stderr; the bag it writes is thrown away.
     with contextlib.redirect_stdout(sys.stderr):
         rec.record(os.devnull, interactions, declared=True, t0=1.0)
-    for t, q in positions:
-        print(f"{1.0 + t - positions[0][0]:.3f} {q:.6f}")
+    track = [(round(1.0 + t - positions[0][0], 3), q) for t, q in positions]
+    if args.trace is None:
+        for t, q in track:
+            print(f"{t:.3f} {q:.6f}")
+        return
+    hinge = rec.model.jnt_type[rec.joint_id(args.joint)] == mujoco.mjtJoint.mjJNT_HINGE
+    compare(track, registered(args.trace, args.label), hinge)
+
+
+def registered(path, label):
+    """The last registered pose logged per stamp for part `label`: {stamp: (angle, shift xyz)}."""
+    line = re.compile(rf"part {label} at ([\d.]+) s: rotation ([\d.]+) rad about \[[^\]]+\], anchor moved \[([^\]]+)\]")
+    out = {}
+    with open(path) as f:
+        for text in f:
+            m = line.search(text)
+            if m:
+                out[round(float(m.group(1)), 3)] = (float(m.group(2)), [float(v) for v in m.group(3).split(",")])
+    if not out:
+        sys.exit(f"error: {path}: no registered pose of part {label} (was BOM_LOG=...,bom::perception=trace set?)")
+    return out
+
+
+def compare(track, reg, hinge):
+    truth = dict(track)
+    stamps = [t for t in sorted(reg) if t in truth]
+    if not stamps:
+        sys.exit("error: the trace's stamps and the recording's do not meet")
+    q0 = truth[stamps[0]]
+    if hinge:
+        pairs = [(reg[t][0], abs(truth[t] - q0)) for t in stamps]
+        unit = "rad"
+    else:
+        far = max((reg[t][1] for t in stamps), key=lambda v: math.hypot(*v))
+        n = math.hypot(*far) or 1.0
+        along = [sum(a * b / n for a, b in zip(reg[t][1], far)) for t in stamps]
+        pairs = [(a, abs(truth[t] - q0)) for a, t in zip(along, stamps)]
+        unit = "m"
+    err = [a - b for a, b in pairs]
+    rms = math.sqrt(sum(e * e for e in err) / len(err))
+    print(f"{len(err)} clouds: registered - true RMS {rms:.4f} {unit}, largest {max(map(abs, err)):.4f} {unit}; "
+          f"last cloud registered {pairs[-1][0]:.4f}, true {pairs[-1][1]:.4f} {unit}")
 
 
 if __name__ == "__main__":
