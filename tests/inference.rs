@@ -108,13 +108,62 @@ fn non_centred_density_gradient_matches_finite_differences() {
     assert!(bad.is_empty(), "gradient vs central differences (index, gradient, fd): {bad:?}");
 }
 
+/// On a nested revolute joint (the corpus object's lid on its drawer, kinematic mode: the wrench
+/// topic not read) the gradient agrees with the value's central differences too, its axis
+/// parameters included — the reach prior of a joint whose parent is a part is in both.
+#[test]
+fn nested_revolute_gradient_matches_finite_differences() {
+    let mut cfg = Config::new();
+    cfg.topics.wrench = "/no_wrench".into();
+    let run = bom::pipeline::replay(&[PathBuf::from("bags/corpus/obj075_procedural.mcap")], &cfg).expect("replay");
+    let ev = bom::pipeline::final_evidence(&run, &cfg);
+    assert!(ev.windows.is_empty(), "kinematic mode");
+    let fitted = svi::fit(&ev, &cfg.model, &cfg.inference, None).expect("a fit");
+    let mut structure = map_structure(&fitted);
+    // The lid: the part whose true parent is another part; checked as a revolute on that parent.
+    let lid = ev.parts.iter().position(|p| p.label == 3).expect("part 3");
+    let drawer = ev.parts.iter().position(|p| p.label == 2).expect("part 2");
+    structure.parent[lid] = drawer + 1;
+    structure.types[lid] = bom::model::JointType::Revolute;
+    structure.parent[drawer] = ev.parts.iter().position(|p| p.label == 1).expect("part 1") + 1;
+    structure.types[drawer] = bom::model::JointType::Prismatic;
+    let density = Density::new(&ev, &cfg.model, structure);
+    let slot = density.slots()[lid];
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+    let mut checked = 0;
+    for k in 0..40 {
+        let mut x = nuts::start_from_guide(&density, &fitted.guide, &mut rng);
+        // Move the lid's hinge far from the lid, so that the reach prior acts.
+        let j = slot.xi + k % slot.np;
+        x[j] += if k % 2 == 0 { 8.0 } else { -8.0 };
+        let pp = density.params(&x, lid);
+        let reach: f64 = bom::model::revolute::reach_prior(&pp, &ev.parts[lid].com0, ev.parts[lid].reach, &cfg.model);
+        let mut g = vec![0.0; density.dim()];
+        let l = density.log_density(&x, &mut g);
+        if !l.is_finite() || reach > -1.0 {
+            continue;
+        }
+        let dims: Vec<usize> = (slot.xi..slot.xi + slot.np).collect();
+        let bad = mismatches(|v, gr| density.log_density(v, gr), &x, &g, &dims);
+        assert!(bad.is_empty(), "reach prior {reach:.1} nats: gradient vs central differences (index, gradient, fd): {bad:?}");
+        checked += 1;
+    }
+    assert!(checked >= 3, "{checked} starts where the reach prior acts");
+    // And every parameter and spread coordinates of every part at a draw of the guide.
+    let x = nuts::start_from_guide(&density, &fitted.guide, &mut rng);
+    let mut g = vec![0.0; density.dim()];
+    assert!(density.log_density(&x, &mut g).is_finite());
+    let bad = mismatches(|v, gr| density.log_density(v, gr), &x, &g, &checked_dims(&density, &ev, false));
+    assert!(bad.is_empty(), "gradient vs central differences (index, gradient, fd): {bad:?}");
+}
+
 /// BOM-NUTS on the structure SVI found, through the same density: its draws keep SVI's
 /// prismatic axis (within 3 degrees) and report finite diagnostics; the structures it sampled
 /// start with SVI's most probable one.
 #[test]
 fn nuts_samples_the_model_svi_fitted() {
     let (cfg, ev, fitted) = drawer();
-    let ncfg = NutsConfig { chains: 2, tune: 150, draws: 100, max_structures: 1, ..NutsConfig::default() };
+    let ncfg = NutsConfig { chains: 2, tune: 150, draws: 100, max_draws: 100, max_structures: 1, ..NutsConfig::default() };
     let (post, report) = nuts::sample(&ev, &cfg.model, &fitted, &ncfg).expect("NUTS runs");
     assert_eq!(report.structures[0].0, map_structure(&fitted));
     assert_eq!(report.chains, 2);
@@ -125,6 +174,28 @@ fn nuts_samples_the_model_svi_fitted() {
     assert!(angle < 3.0, "NUTS axis {:?} vs SVI {:?}: {angle:.2} deg", a.direction, b.direction);
     let kd = post.joints[drawer].kinodynamics.expect("dynamic mode");
     assert!(kd.damping.q05 <= kd.damping.median && kd.damping.median <= kd.damping.q95 && kd.damping.q05 > 0.0, "{kd:?}");
+}
+
+/// A real door track (kinematic mode) with the low-rank mass matrix: chains whose diagnostics
+/// miss a limit go on by `draws` until `max_draws` (an unreachable R-hat limit forces every
+/// extension, and the report says so); with reachable limits they stop as soon as both hold.
+#[test]
+fn nuts_extends_chains_until_the_diagnostics_hold() {
+    let mut cfg = Config::new();
+    cfg.nuts.mass_matrix = nuts::MassMatrix::LowRank;
+    let run = bom::pipeline::replay(&[PathBuf::from("bags/sturm/left_door_001.mcap")], &cfg).expect("replay");
+    let ev = bom::pipeline::final_evidence(&run, &cfg);
+    assert!(ev.windows.is_empty(), "a real track has no wrench: kinematic mode");
+    let fitted = svi::fit(&ev, &cfg.model, &cfg.inference, None).expect("a fit");
+    let base = NutsConfig { chains: 2, tune: 200, draws: 100, max_structures: 1, mass_matrix: nuts::MassMatrix::LowRank, ..NutsConfig::default() };
+    let never = NutsConfig { max_draws: 300, r_hat_max: 0.5, ..base.clone() };
+    let (_, report) = nuts::sample(&ev, &cfg.model, &fitted, &never).expect("NUTS runs");
+    assert_eq!(report.draws, 300, "{report:?}");
+    assert!(report.warnings.iter().any(|w| w.contains("R-hat")), "{report:?}");
+    let easy = NutsConfig { max_draws: 300, r_hat_max: 10.0, ess_bulk_min: 1.0, divergence_share_max: 1.0, ..base };
+    let (_, report) = nuts::sample(&ev, &cfg.model, &fitted, &easy).expect("NUTS runs");
+    assert_eq!(report.draws, 100, "{report:?}");
+    assert!(report.warnings.is_empty(), "{report:?}");
 }
 
 /// `--inference` takes svi or nuts; anything else is a bad argument (exit 2, one line).

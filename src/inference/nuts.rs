@@ -1,6 +1,9 @@
 //! BOM-NUTS: the No-U-Turn sampler (Hoffman and Gelman, *JMLR* 15, 2014; the paper's BOM-NUTS
 //! row of Table 1) on the model's log density ([`crate::model::density`]), with the `nuts-rs`
-//! crate (PyMC's sampler: step size by dual averaging, diagonal mass matrix adapted in warm-up).
+//! crate (PyMC's sampler: step size by dual averaging, a diagonal or diagonal-plus-low-rank mass
+//! matrix adapted in warm-up, [`MassMatrix`]). A structure's chains go on in rounds of `draws`
+//! while its R-hat or bulk ESS misses the limit, up to `max_draws` (the warm-up's adaptation
+//! kept; the diagnostics are those of all the draws).
 //!
 //! NUTS samples continuous latents only, so the discrete ones — the tree and the joint types —
 //! are conditioned on: the structures that hold at least `structure_mass` of the SVI posterior's
@@ -25,7 +28,7 @@ use std::time::Instant;
 
 use nuts_rs::rand::rngs::ChaCha8Rng as NutsRng;
 use nuts_rs::rand::SeedableRng as _;
-use nuts_rs::{Chain, CpuLogpFunc, CpuMath, CpuMathError, DiagNutsSettings, HasDims, LogpError, Settings};
+use nuts_rs::{Chain, CpuLogpFunc, CpuMath, CpuMathError, DiagNutsSettings, HasDims, LogpError, LowRankNutsSettings, Settings};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
@@ -53,6 +56,19 @@ pub struct NutsConfig {
     /// Warm-up (tuning) and sampling draws per chain.
     pub tune: u64,
     pub draws: u64,
+    /// Most sampling draws per chain: while a structure's R-hat or bulk ESS misses its limit, its
+    /// chains go on by `draws` more (the warm-up's adaptation kept), up to this many (at most
+    /// `draws` when smaller: no extension).
+    pub max_draws: u64,
+    /// The mass matrix adapted in warm-up: `diag` (a variance per coordinate) or `low_rank`
+    /// (nuts-rs's diagonal plus low-rank update from the draws' and gradients' covariance:
+    /// Seyboldt's covadapt), which follows the correlations between an axis and the joint
+    /// coordinates of every frame that a diagonal one cannot.
+    pub mass_matrix: MassMatrix,
+    /// The mean acceptance probability the step size is adapted to (dual averaging; nuts-rs's
+    /// default 0.8, ours 0.9: chosen on the `tune` split). Higher means smaller steps: fewer divergences where the posterior narrows
+    /// (a noise level near its floor), more leapfrog steps a draw.
+    pub target_accept: f64,
     /// Largest tree depth (at most `2^maxdepth` leapfrog steps per draw).
     pub maxdepth: u64,
     /// Dynamic mode: sample the coordinates in windows non-centred, `q_t = Psi_t + sigma_d u_t`
@@ -77,6 +93,9 @@ impl Default for NutsConfig {
             chains: 4,
             tune: 1000,
             draws: 1000,
+            max_draws: 4000,
+            mass_matrix: MassMatrix::LowRank,
+            target_accept: 0.9,
             maxdepth: 10,
             non_centred: false,
             structure_mass: 0.99,
@@ -89,11 +108,24 @@ impl Default for NutsConfig {
     }
 }
 
+/// The mass matrix NUTS adapts in warm-up (`nuts.mass_matrix`).
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum MassMatrix {
+    /// nuts-rs's `DiagNutsSettings`: one variance per coordinate (from draws and gradients).
+    Diag,
+    /// nuts-rs's `LowRankNutsSettings`: the diagonal one plus the eigenvectors of the draws'
+    /// and gradients' covariance whose eigenvalues pass its cutoff. The default (chosen on the
+    /// `tune` split, README "BOM-NUTS").
+    #[default]
+    LowRank,
+}
+
 /// The sampler's diagnostics over all sampled structures (the JSON's `model.sampler`).
 #[derive(Debug, Clone, PartialEq)]
 pub struct SamplerReport {
     pub chains: usize,
-    /// Sampling draws per chain.
+    /// Sampling draws per chain (the most of any structure, extensions included).
     pub draws: u64,
     /// Over every reported parameter (axis direction and point, kinodynamics, noise level) of
     /// every sampled structure: the largest R-hat and the least bulk ESS.
@@ -332,59 +364,147 @@ fn preconditioner(density: &Density<'_>, guide: &GuideState) -> Vec<(usize, DVec
     out
 }
 
-/// One chain's sampling draws (model coordinates) and its divergent transitions among them.
-type ChainDraws = (Vec<Vec<f64>>, u64);
+/// What one chain sends back after a round: its new sampling draws (model coordinates), the
+/// divergent transitions and leapfrog steps among them, and its step size.
+type Round = (Vec<Vec<f64>>, u64, u64, f64);
 
-/// Run the chains of one structure.
-fn sample_structure(ev: &Evidence, model: &ModelConfig, structure: &Structure, guide: &GuideState, cfg: &NutsConfig, seed: u64) -> Result<StructureDraws, String> {
-    let settings = DiagNutsSettings { num_tune: cfg.tune, num_draws: cfg.draws, maxdepth: cfg.maxdepth, ..Default::default() };
-    let results: Vec<Result<ChainDraws, String>> = std::thread::scope(|scope| {
-        let handles: Vec<_> = (0..cfg.chains.max(1))
-            .map(|c| {
-                scope.spawn(move || -> Result<ChainDraws, String> {
-                    let density = Density::new(ev, model, structure.clone());
-                    let mut rng = ChaCha8Rng::seed_from_u64(seed.wrapping_add(1000 * c as u64));
-                    let blocks = preconditioner(&density, guide);
-                    let x0 = start_from_guide(&density, guide, &mut rng);
-                    let logp = Logp { blocks: blocks.clone(), density: NonCentred::new(density, cfg.non_centred) };
-                    let z0 = logp.to_sampler(&logp.density.from_model(&x0));
-                    // The chain owns `logp`; draws are mapped back to the model by a view of its own.
-                    let map = NonCentred::new(Density::new(ev, model, structure.clone()), cfg.non_centred);
-                    let math = CpuMath::new(logp);
-                    let mut nrng = NutsRng::seed_from_u64(seed.wrapping_add(7919 * c as u64 + 1));
-                    let mut chain = settings.new_chain(c as u64, math, &mut nrng).map_err(|e| e.to_string())?;
-                    chain.set_position(&z0).map_err(|e| format!("chain {c}: start: {e}"))?;
-                    let mut out = Vec::with_capacity(settings.num_draws as usize);
-                    let mut divergences = 0;
-                    let (started, mut steps, mut step_size) = (Instant::now(), 0u64, f64::NAN);
-                    for _ in 0..settings.num_tune + settings.num_draws {
-                        let (draw, info) = chain.draw().map_err(|e| format!("chain {c}: {e}"))?;
-                        if !info.tuning {
-                            divergences += info.diverging as u64;
-                            steps += info.num_steps;
-                            step_size = info.step_size;
-                            out.push(map.to_model(&to_model(&blocks, &draw)));
+/// Whether a structure's draws so far, `draws[chain][k]` (model coordinates), meet the
+/// diagnostics' limits.
+type Settled<'a> = dyn Fn(&[Vec<Vec<f64>>]) -> bool + 'a;
+
+/// Run the chains of one structure: warm-up and `cfg.draws` sampling draws each, then `cfg.draws`
+/// more while `settled` (given every chain's draws so far) says no, up to `cfg.max_draws`.
+fn sample_structure(
+    ev: &Evidence,
+    model: &ModelConfig,
+    structure: &Structure,
+    guide: &GuideState,
+    cfg: &NutsConfig,
+    seed: u64,
+    settled: &Settled<'_>,
+) -> Result<StructureDraws, String> {
+    match cfg.mass_matrix {
+        MassMatrix::Diag => {
+            let mut settings = DiagNutsSettings { num_tune: cfg.tune, num_draws: cfg.draws, maxdepth: cfg.maxdepth, ..Default::default() };
+            settings.adapt_options.step_size_settings.target_accept = cfg.target_accept;
+            run_chains(settings, ev, model, structure, guide, cfg, seed, settled)
+        }
+        MassMatrix::LowRank => {
+            let mut settings = LowRankNutsSettings { num_tune: cfg.tune, num_draws: cfg.draws, maxdepth: cfg.maxdepth, ..Default::default() };
+            settings.adapt_options.step_size_settings.target_accept = cfg.target_accept;
+            run_chains(settings, ev, model, structure, guide, cfg, seed, settled)
+        }
+    }
+}
+
+/// [`sample_structure`] with one kind of sampler settings. Each chain lives in its own thread
+/// (nuts-rs chains are not `Send`) and draws a round on each command it receives.
+#[allow(clippy::too_many_arguments)]
+fn run_chains<S: Settings>(
+    settings: S,
+    ev: &Evidence,
+    model: &ModelConfig,
+    structure: &Structure,
+    guide: &GuideState,
+    cfg: &NutsConfig,
+    seed: u64,
+    settled: &Settled<'_>,
+) -> Result<StructureDraws, String> {
+    use std::sync::mpsc;
+    let chains = cfg.chains.max(1);
+    let round = cfg.draws.max(1);
+    let most = cfg.max_draws.max(round);
+    std::thread::scope(|scope| {
+        let (tx, rx) = mpsc::channel::<(usize, Result<Round, String>)>();
+        let mut commands = Vec::with_capacity(chains);
+        for c in 0..chains {
+            let (ctx, crx) = mpsc::channel::<u64>();
+            commands.push(ctx);
+            let tx = tx.clone();
+            scope.spawn(move || {
+                let started = Instant::now();
+                let density = Density::new(ev, model, structure.clone());
+                let mut rng = ChaCha8Rng::seed_from_u64(seed.wrapping_add(1000 * c as u64));
+                let blocks = preconditioner(&density, guide);
+                let x0 = start_from_guide(&density, guide, &mut rng);
+                let logp = Logp { blocks: blocks.clone(), density: NonCentred::new(density, cfg.non_centred) };
+                let z0 = logp.to_sampler(&logp.density.from_model(&x0));
+                // The chain owns `logp`; draws are mapped back to the model by a view of its own.
+                let map = NonCentred::new(Density::new(ev, model, structure.clone()), cfg.non_centred);
+                let math = CpuMath::new(logp);
+                let mut nrng = NutsRng::seed_from_u64(seed.wrapping_add(7919 * c as u64 + 1));
+                let mut chain = match settings.new_chain(c as u64, math, &mut nrng).map_err(|e| e.to_string()).and_then(|mut ch| {
+                    ch.set_position(&z0).map_err(|e| format!("chain {c}: start: {e}"))?;
+                    Ok(ch)
+                }) {
+                    Ok(ch) => ch,
+                    Err(e) => {
+                        let _ = tx.send((c, Err(e)));
+                        return;
+                    }
+                };
+                let mut n = settings.hint_num_tune() as u64 + round;
+                let (mut drawn, mut divergent, mut all_steps) = (0u64, 0u64, 0u64);
+                loop {
+                    let mut out = Vec::with_capacity(round as usize);
+                    let (mut divergences, mut steps, mut step_size) = (0u64, 0u64, f64::NAN);
+                    for _ in 0..n {
+                        match chain.draw() {
+                            Ok((draw, info)) => {
+                                if !info.tuning {
+                                    divergences += info.diverging as u64;
+                                    steps += info.num_steps;
+                                    step_size = info.step_size;
+                                    out.push(map.to_model(&to_model(&blocks, &draw)));
+                                }
+                            }
+                            Err(e) => {
+                                let _ = tx.send((c, Err(format!("chain {c}: {e}"))));
+                                return;
+                            }
                         }
                     }
+                    drawn += out.len() as u64;
+                    divergent += divergences;
+                    all_steps += steps;
                     tracing::debug!(
-                        "NUTS chain {c}: {:.1} s, {:.1} leapfrog steps per draw, step size {step_size:.3}, {divergences} divergent",
+                        "NUTS chain {c}: {:.1} s, {drawn} draws, {:.1} leapfrog steps per draw, step size {step_size:.3}, {divergent} divergent",
                         started.elapsed().as_secs_f64(),
-                        steps as f64 / out.len().max(1) as f64
+                        all_steps as f64 / drawn.max(1) as f64
                     );
-                    Ok((out, divergences))
-                })
-            })
-            .collect();
-        handles.into_iter().map(|h| h.join().unwrap_or_else(|_| Err("chain panicked".into()))).collect()
-    });
-    let mut draws = Vec::new();
-    let mut divergences = 0;
-    for r in results {
-        let (d, v) = r?;
-        draws.push(d);
-        divergences += v;
-    }
-    Ok(StructureDraws { draws, divergences })
+                    if tx.send((c, Ok((out, divergences, steps, step_size)))).is_err() {
+                        return;
+                    }
+                    // The next round's length, or the end (0, or the sender dropped).
+                    n = crx.recv().unwrap_or(0);
+                    if n == 0 {
+                        return;
+                    }
+                }
+            });
+        }
+        drop(tx);
+        let mut draws: Vec<Vec<Vec<f64>>> = vec![Vec::new(); chains];
+        let mut divergences = 0;
+        loop {
+            for _ in 0..chains {
+                let (c, r) = rx.recv().map_err(|_| "NUTS: a chain ended without its draws".to_string())?;
+                let (out, div, _, _) = r?;
+                draws[c].extend(out);
+                divergences += div;
+            }
+            let taken = draws.iter().map(|d| d.len() as u64).min().unwrap_or(0);
+            let more = taken + round <= most && !settled(&draws);
+            for ctx in &commands {
+                let _ = ctx.send(if more { round } else { 0 });
+            }
+            if !more {
+                break;
+            }
+            tracing::debug!("NUTS: diagnostics missed after {taken} draws a chain; {round} more");
+        }
+        Ok(StructureDraws { draws, divergences })
+    })
 }
 
 /// The reported scalars of a draw: per part, the noise level; per movable part, the axis
@@ -471,7 +591,7 @@ pub fn sample(ev: &Evidence, model: &ModelConfig, svi: &Fitted, cfg: &NutsConfig
     let n = ev.parts.len();
     let mut report = SamplerReport {
         chains: cfg.chains.max(1),
-        draws: cfg.draws,
+        draws: 0,
         r_hat_max: f64::NAN,
         ess_bulk_min: f64::NAN,
         divergences: 0,
@@ -482,24 +602,22 @@ pub fn sample(ev: &Evidence, model: &ModelConfig, svi: &Fitted, cfg: &NutsConfig
     };
     let mut posterior = svi.posterior.clone();
     let (mut r_max, mut ess_min) = (1.0f64, f64::INFINITY);
+    let mut total = 0u64;
     for (si, (structure, _)) in structs.iter().enumerate() {
-        let sd = sample_structure(ev, model, structure, &svi.guide, cfg, cfg.seed.wrapping_add(si as u64 * 100_003))?;
-        report.divergences += sd.divergences;
         let density = Density::new(ev, model, structure.clone());
         // Reported scalars per chain and draw, axis directions flipped onto SVI's side.
         let reference: Vec<Option<nalgebra::Vector3<f64>>> = posterior.joints.iter().map(|j| j.axis.as_ref().map(|a| a.direction)).collect();
-        let per_draw: Vec<Vec<Vec<(String, f64)>>> = sd.draws.iter().map(|c| c.iter().map(|x| reported(&density, x, &reference, model)).collect()).collect();
-        let names: Vec<String> = per_draw.first().and_then(|c| c.first()).map(|d| d.iter().map(|(n, _)| n.clone()).collect()).unwrap_or_default();
-        for (k, name) in names.iter().enumerate() {
-            let chains: Vec<Vec<f64>> = per_draw.iter().map(|c| c.iter().map(|d| d[k].1).collect()).collect();
-            let (r, ess) = rank_diagnostics(&chains);
-            if !(r_hat_ok(r, cfg) && ess_ok(ess, cfg)) {
-                let med: Vec<f64> = chains.iter().map(|c| estimate_from_draws(c).median).collect();
-                tracing::debug!("structure {si}: {name}: R-hat {r:.3}, bulk ESS {ess:.0}, chain medians {med:.4?}");
-            }
-            r_max = if r.is_nan() { f64::NAN } else { r_max.max(r) };
-            ess_min = ess_min.min(ess);
-        }
+        let settled = |d: &[Vec<Vec<f64>>]| {
+            let (r, ess) = diagnostics(&density, d, &reference, model, None);
+            r_hat_ok(r, cfg) && ess_ok(ess, cfg)
+        };
+        let sd = sample_structure(ev, model, structure, &svi.guide, cfg, cfg.seed.wrapping_add(si as u64 * 100_003), &settled)?;
+        report.divergences += sd.divergences;
+        report.draws = report.draws.max(sd.draws.iter().map(|d| d.len() as u64).min().unwrap_or(0));
+        total += sd.draws.iter().map(|d| d.len() as u64).sum::<u64>();
+        let (r, ess) = diagnostics(&density, &sd.draws, &reference, model, Some((si, cfg)));
+        r_max = if r.is_nan() || r_max.is_nan() { f64::NAN } else { r_max.max(r) };
+        ess_min = ess_min.min(ess);
         if si == 0 {
             summarise_map(&mut posterior, &density, &sd, model);
         }
@@ -527,7 +645,7 @@ pub fn sample(ev: &Evidence, model: &ModelConfig, svi: &Fitted, cfg: &NutsConfig
     }
     report.r_hat_max = r_max;
     report.ess_bulk_min = if ess_min.is_finite() { ess_min } else { f64::NAN };
-    let total = (report.chains as u64 * cfg.draws * structs.len() as u64).max(1);
+    let total = total.max(1);
     if !r_hat_ok(report.r_hat_max, cfg) {
         report.warnings.push(format!("NUTS: R-hat {:.3} > {}", report.r_hat_max, cfg.r_hat_max));
     }
@@ -540,6 +658,28 @@ pub fn sample(ev: &Evidence, model: &ModelConfig, svi: &Fitted, cfg: &NutsConfig
     report.runtime_s = started.elapsed().as_secs_f64();
     posterior.runtime_s = svi.posterior.runtime_s + report.runtime_s;
     Ok((posterior, report))
+}
+
+/// The largest R-hat and least bulk ESS over the reported scalars ([`reported`]) of one
+/// structure's draws `draws[chain][k]` (NaN R-hat when any is NaN). With `log = Some((structure
+/// index, cfg))`, each scalar outside `cfg`'s limits is a debug line with its chains' medians.
+fn diagnostics(density: &Density<'_>, draws: &[Vec<Vec<f64>>], reference: &[Option<nalgebra::Vector3<f64>>], model: &ModelConfig, log: Option<(usize, &NutsConfig)>) -> (f64, f64) {
+    let per_draw: Vec<Vec<Vec<(String, f64)>>> = draws.iter().map(|c| c.iter().map(|x| reported(density, x, reference, model)).collect()).collect();
+    let names: Vec<String> = per_draw.first().and_then(|c| c.first()).map(|d| d.iter().map(|(n, _)| n.clone()).collect()).unwrap_or_default();
+    let (mut r_max, mut ess_min) = (1.0f64, f64::INFINITY);
+    for (k, name) in names.iter().enumerate() {
+        let chains: Vec<Vec<f64>> = per_draw.iter().map(|c| c.iter().map(|d| d[k].1).collect()).collect();
+        let (r, ess) = rank_diagnostics(&chains);
+        if let Some((si, cfg)) = log {
+            if !(r_hat_ok(r, cfg) && ess_ok(ess, cfg)) {
+                let med: Vec<f64> = chains.iter().map(|c| estimate_from_draws(c).median).collect();
+                tracing::debug!("structure {si}: {name}: R-hat {r:.3}, bulk ESS {ess:.0}, chain medians {med:.4?}");
+            }
+        }
+        r_max = if r.is_nan() || r_max.is_nan() { f64::NAN } else { r_max.max(r) };
+        ess_min = ess_min.min(ess);
+    }
+    (r_max, ess_min)
 }
 
 /// Whether an R-hat meets the configured limit (NaN never does).

@@ -429,12 +429,17 @@ impl<'a> Density<'a> {
             }
             // The likelihood of the part's subtree: its gradient with respect to this part's
             // parameters is exact (the descendants move with it); the value is counted once, at
-            // the children of the fixed frame.
+            // the children of the fixed frame. A revolute joint's reach prior is in its own
+            // block's value and gradient only, so a nested one adds its value here (without it
+            // the gradient was not the value's: HMC's energy error grew with the prior and the
+            // step size fell towards zero on a lid hinged on a drawer).
             let pre = pre_transforms(parent, i, &transforms, frames);
             let members = subtree_members(parent, i, &transforms, &positions, &values);
             let (l, gx, gq) = block_pass(ev, i, s.joint, &x[s.xi..s.xi + s.np], values[i].q, &pre, &members, model);
             if parent[i] == 0 {
                 lp += l;
+            } else if s.joint == JointType::Revolute {
+                lp += crate::model::revolute::reach_prior(&params[i], &ev.parts[i].com0, ev.parts[i].reach, model);
             }
             for (j, g) in gx.iter().enumerate() {
                 grad[s.xi + j] += g;
