@@ -421,65 +421,73 @@ fn run_chains<S: Settings>(
             let (ctx, crx) = mpsc::channel::<u64>();
             commands.push(ctx);
             let tx = tx.clone();
+            let on_panic = tx.clone();
+            // A chain that panics still answers its round (an error), so that the others and the
+            // caller never wait for it.
             scope.spawn(move || {
-                let started = Instant::now();
-                let density = Density::new(ev, model, structure.clone());
-                let mut rng = ChaCha8Rng::seed_from_u64(seed.wrapping_add(1000 * c as u64));
-                let blocks = preconditioner(&density, guide);
-                let x0 = start_from_guide(&density, guide, &mut rng);
-                let logp = Logp { blocks: blocks.clone(), density: NonCentred::new(density, cfg.non_centred) };
-                let z0 = logp.to_sampler(&logp.density.from_model(&x0));
-                // The chain owns `logp`; draws are mapped back to the model by a view of its own.
-                let map = NonCentred::new(Density::new(ev, model, structure.clone()), cfg.non_centred);
-                let math = CpuMath::new(logp);
-                let mut nrng = NutsRng::seed_from_u64(seed.wrapping_add(7919 * c as u64 + 1));
-                let mut chain = match settings.new_chain(c as u64, math, &mut nrng).map_err(|e| e.to_string()).and_then(|mut ch| {
-                    ch.set_position(&z0).map_err(|e| format!("chain {c}: start: {e}"))?;
-                    Ok(ch)
-                }) {
-                    Ok(ch) => ch,
-                    Err(e) => {
-                        let _ = tx.send((c, Err(e)));
-                        return;
-                    }
-                };
-                let mut n = settings.hint_num_tune() as u64 + round;
-                let (mut drawn, mut divergent, mut all_steps) = (0u64, 0u64, 0u64);
-                loop {
-                    let mut out = Vec::with_capacity(round as usize);
-                    let (mut divergences, mut steps, mut step_size) = (0u64, 0u64, f64::NAN);
-                    for _ in 0..n {
-                        match chain.draw() {
-                            Ok((draw, info)) => {
-                                if !info.tuning {
-                                    divergences += info.diverging as u64;
-                                    steps += info.num_steps;
-                                    step_size = info.step_size;
-                                    out.push(map.to_model(&to_model(&blocks, &draw)));
+                let ran = std::panic::catch_unwind(std::panic::AssertUnwindSafe(move || {
+                    let started = Instant::now();
+                    let density = Density::new(ev, model, structure.clone());
+                    let mut rng = ChaCha8Rng::seed_from_u64(seed.wrapping_add(1000 * c as u64));
+                    let blocks = preconditioner(&density, guide);
+                    let x0 = start_from_guide(&density, guide, &mut rng);
+                    let logp = Logp { blocks: blocks.clone(), density: NonCentred::new(density, cfg.non_centred) };
+                    let z0 = logp.to_sampler(&logp.density.from_model(&x0));
+                    // The chain owns `logp`; draws are mapped back to the model by a view of its own.
+                    let map = NonCentred::new(Density::new(ev, model, structure.clone()), cfg.non_centred);
+                    let math = CpuMath::new(logp);
+                    let mut nrng = NutsRng::seed_from_u64(seed.wrapping_add(7919 * c as u64 + 1));
+                    let mut chain = match settings.new_chain(c as u64, math, &mut nrng).map_err(|e| e.to_string()).and_then(|mut ch| {
+                        ch.set_position(&z0).map_err(|e| format!("chain {c}: start: {e}"))?;
+                        Ok(ch)
+                    }) {
+                        Ok(ch) => ch,
+                        Err(e) => {
+                            let _ = tx.send((c, Err(e)));
+                            return;
+                        }
+                    };
+                    let mut n = settings.hint_num_tune() as u64 + round;
+                    let (mut drawn, mut divergent, mut all_steps) = (0u64, 0u64, 0u64);
+                    loop {
+                        let mut out = Vec::with_capacity(round as usize);
+                        let (mut divergences, mut steps, mut step_size) = (0u64, 0u64, f64::NAN);
+                        for _ in 0..n {
+                            match chain.draw() {
+                                Ok((draw, info)) => {
+                                    if !info.tuning {
+                                        divergences += info.diverging as u64;
+                                        steps += info.num_steps;
+                                        step_size = info.step_size;
+                                        out.push(map.to_model(&to_model(&blocks, &draw)));
+                                    }
+                                }
+                                Err(e) => {
+                                    let _ = tx.send((c, Err(format!("chain {c}: {e}"))));
+                                    return;
                                 }
                             }
-                            Err(e) => {
-                                let _ = tx.send((c, Err(format!("chain {c}: {e}"))));
-                                return;
-                            }
+                        }
+                        drawn += out.len() as u64;
+                        divergent += divergences;
+                        all_steps += steps;
+                        tracing::debug!(
+                            "NUTS chain {c}: {:.1} s, {drawn} draws, {:.1} leapfrog steps per draw, step size {step_size:.3}, {divergent} divergent",
+                            started.elapsed().as_secs_f64(),
+                            all_steps as f64 / drawn.max(1) as f64
+                        );
+                        if tx.send((c, Ok((out, divergences, steps, step_size)))).is_err() {
+                            return;
+                        }
+                        // The next round's length, or the end (0, or the sender dropped).
+                        n = crx.recv().unwrap_or(0);
+                        if n == 0 {
+                            return;
                         }
                     }
-                    drawn += out.len() as u64;
-                    divergent += divergences;
-                    all_steps += steps;
-                    tracing::debug!(
-                        "NUTS chain {c}: {:.1} s, {drawn} draws, {:.1} leapfrog steps per draw, step size {step_size:.3}, {divergent} divergent",
-                        started.elapsed().as_secs_f64(),
-                        all_steps as f64 / drawn.max(1) as f64
-                    );
-                    if tx.send((c, Ok((out, divergences, steps, step_size)))).is_err() {
-                        return;
-                    }
-                    // The next round's length, or the end (0, or the sender dropped).
-                    n = crx.recv().unwrap_or(0);
-                    if n == 0 {
-                        return;
-                    }
+                }));
+                if ran.is_err() {
+                    let _ = on_panic.send((c, Err(format!("chain {c} panicked"))));
                 }
             });
         }
