@@ -309,10 +309,13 @@ fn is_tree(parent: &[usize]) -> bool {
     })
 }
 
-/// Draws of one structure's chains: `draws[chain][k]` positions, and divergences.
+/// Draws of one structure's chains, `draws[chain][k]` (model coordinates), their divergent
+/// transitions, and the diagnostics of all of them ([`diagnostics`]: largest R-hat, least bulk ESS).
 struct StructureDraws {
     draws: Vec<Vec<Vec<f64>>>,
     divergences: u64,
+    r_hat: f64,
+    ess_bulk: f64,
 }
 
 /// A start for a chain: a draw of SVI's guide for the structure's blocks (guide means plus its
@@ -364,53 +367,52 @@ fn preconditioner(density: &Density<'_>, guide: &GuideState) -> Vec<(usize, DVec
     out
 }
 
-/// What one chain sends back after a round: its new sampling draws (model coordinates), the
-/// divergent transitions and leapfrog steps among them, and its step size.
-type Round = (Vec<Vec<f64>>, u64, u64, f64);
+/// What one chain sends back after a round: its new sampling draws (model coordinates) and the
+/// divergent transitions among them.
+struct Round {
+    draws: Vec<Vec<f64>>,
+    divergences: u64,
+}
 
-/// Whether a structure's draws so far, `draws[chain][k]` (model coordinates), meet the
-/// diagnostics' limits.
-type Settled<'a> = dyn Fn(&[Vec<Vec<f64>>]) -> bool + 'a;
+/// The diagnostics of a structure's draws so far, `draws[chain][k]` (model coordinates): largest
+/// R-hat and least bulk ESS over the reported scalars.
+type Diagnose<'a> = dyn Fn(&[Vec<Vec<f64>>]) -> (f64, f64) + 'a;
+
+/// One structure's sampling job: the evidence and model it is conditioned on, the structure, SVI's
+/// guide (chain starts and kinodynamic preconditioning), the settings and the seed.
+struct Job<'a> {
+    ev: &'a Evidence,
+    model: &'a ModelConfig,
+    structure: &'a Structure,
+    guide: &'a GuideState,
+    cfg: &'a NutsConfig,
+    seed: u64,
+}
 
 /// Run the chains of one structure: warm-up and `cfg.draws` sampling draws each, then `cfg.draws`
-/// more while `settled` (given every chain's draws so far) says no, up to `cfg.max_draws`.
-fn sample_structure(
-    ev: &Evidence,
-    model: &ModelConfig,
-    structure: &Structure,
-    guide: &GuideState,
-    cfg: &NutsConfig,
-    seed: u64,
-    settled: &Settled<'_>,
-) -> Result<StructureDraws, String> {
+/// more while `diagnose` (given every chain's draws so far) misses the R-hat or ESS limit, up to
+/// `cfg.max_draws`.
+fn sample_structure(job: &Job<'_>, diagnose: &Diagnose<'_>) -> Result<StructureDraws, String> {
+    let cfg = job.cfg;
     match cfg.mass_matrix {
         MassMatrix::Diag => {
             let mut settings = DiagNutsSettings { num_tune: cfg.tune, num_draws: cfg.draws, maxdepth: cfg.maxdepth, ..Default::default() };
             settings.adapt_options.step_size_settings.target_accept = cfg.target_accept;
-            run_chains(settings, ev, model, structure, guide, cfg, seed, settled)
+            run_chains(settings, job, diagnose)
         }
         MassMatrix::LowRank => {
             let mut settings = LowRankNutsSettings { num_tune: cfg.tune, num_draws: cfg.draws, maxdepth: cfg.maxdepth, ..Default::default() };
             settings.adapt_options.step_size_settings.target_accept = cfg.target_accept;
-            run_chains(settings, ev, model, structure, guide, cfg, seed, settled)
+            run_chains(settings, job, diagnose)
         }
     }
 }
 
 /// [`sample_structure`] with one kind of sampler settings. Each chain lives in its own thread
 /// (nuts-rs chains are not `Send`) and draws a round on each command it receives.
-#[allow(clippy::too_many_arguments)]
-fn run_chains<S: Settings>(
-    settings: S,
-    ev: &Evidence,
-    model: &ModelConfig,
-    structure: &Structure,
-    guide: &GuideState,
-    cfg: &NutsConfig,
-    seed: u64,
-    settled: &Settled<'_>,
-) -> Result<StructureDraws, String> {
+fn run_chains<S: Settings>(settings: S, job: &Job<'_>, diagnose: &Diagnose<'_>) -> Result<StructureDraws, String> {
     use std::sync::mpsc;
+    let Job { ev, model, structure, guide, cfg, seed } = *job;
     let chains = cfg.chains.max(1);
     let round = cfg.draws.max(1);
     let most = cfg.max_draws.max(round);
@@ -448,16 +450,16 @@ fn run_chains<S: Settings>(
                         }
                     };
                     let mut n = settings.hint_num_tune() as u64 + round;
-                    let (mut drawn, mut divergent, mut all_steps) = (0u64, 0u64, 0u64);
+                    let (mut drawn, mut divergent, mut all_steps, mut step_size) = (0u64, 0u64, 0u64, f64::NAN);
                     loop {
                         let mut out = Vec::with_capacity(round as usize);
-                        let (mut divergences, mut steps, mut step_size) = (0u64, 0u64, f64::NAN);
+                        let mut divergences = 0u64;
                         for _ in 0..n {
                             match chain.draw() {
                                 Ok((draw, info)) => {
                                     if !info.tuning {
                                         divergences += info.diverging as u64;
-                                        steps += info.num_steps;
+                                        all_steps += info.num_steps;
                                         step_size = info.step_size;
                                         out.push(map.to_model(&to_model(&blocks, &draw)));
                                     }
@@ -470,13 +472,12 @@ fn run_chains<S: Settings>(
                         }
                         drawn += out.len() as u64;
                         divergent += divergences;
-                        all_steps += steps;
                         tracing::debug!(
                             "NUTS chain {c}: {:.1} s, {drawn} draws, {:.1} leapfrog steps per draw, step size {step_size:.3}, {divergent} divergent",
                             started.elapsed().as_secs_f64(),
                             all_steps as f64 / drawn.max(1) as f64
                         );
-                        if tx.send((c, Ok((out, divergences, steps, step_size)))).is_err() {
+                        if tx.send((c, Ok(Round { draws: out, divergences }))).is_err() {
                             return;
                         }
                         // The next round's length, or the end (0, or the sender dropped).
@@ -497,21 +498,21 @@ fn run_chains<S: Settings>(
         loop {
             for _ in 0..chains {
                 let (c, r) = rx.recv().map_err(|_| "NUTS: a chain ended without its draws".to_string())?;
-                let (out, div, _, _) = r?;
-                draws[c].extend(out);
-                divergences += div;
+                let r = r?;
+                draws[c].extend(r.draws);
+                divergences += r.divergences;
             }
             let taken = draws.iter().map(|d| d.len() as u64).min().unwrap_or(0);
-            let more = taken + round <= most && !settled(&draws);
+            let (r_hat, ess_bulk) = diagnose(&draws);
+            let more = taken + round <= most && !(r_hat_ok(r_hat, cfg) && ess_ok(ess_bulk, cfg));
             for ctx in &commands {
                 let _ = ctx.send(if more { round } else { 0 });
             }
             if !more {
-                break;
+                return Ok(StructureDraws { draws, divergences, r_hat, ess_bulk });
             }
-            tracing::debug!("NUTS: diagnostics missed after {taken} draws a chain; {round} more");
+            tracing::debug!("NUTS: diagnostics missed after {taken} draws a chain (R-hat {r_hat:.3}, bulk ESS {ess_bulk:.0}); {round} more");
         }
-        Ok(StructureDraws { draws, divergences })
     })
 }
 
@@ -615,15 +616,13 @@ pub fn sample(ev: &Evidence, model: &ModelConfig, svi: &Fitted, cfg: &NutsConfig
         let density = Density::new(ev, model, structure.clone());
         // Reported scalars per chain and draw, axis directions flipped onto SVI's side.
         let reference: Vec<Option<nalgebra::Vector3<f64>>> = posterior.joints.iter().map(|j| j.axis.as_ref().map(|a| a.direction)).collect();
-        let settled = |d: &[Vec<Vec<f64>>]| {
-            let (r, ess) = diagnostics(&density, d, &reference, model, None);
-            r_hat_ok(r, cfg) && ess_ok(ess, cfg)
-        };
-        let sd = sample_structure(ev, model, structure, &svi.guide, cfg, cfg.seed.wrapping_add(si as u64 * 100_003), &settled)?;
+        let diagnose = |d: &[Vec<Vec<f64>>]| diagnostics(&density, d, &reference, model, (si, cfg));
+        let job = Job { ev, model, structure, guide: &svi.guide, cfg, seed: cfg.seed.wrapping_add(si as u64 * 100_003) };
+        let sd = sample_structure(&job, &diagnose)?;
         report.divergences += sd.divergences;
         report.draws = report.draws.max(sd.draws.iter().map(|d| d.len() as u64).min().unwrap_or(0));
         total += sd.draws.iter().map(|d| d.len() as u64).sum::<u64>();
-        let (r, ess) = diagnostics(&density, &sd.draws, &reference, model, Some((si, cfg)));
+        let (r, ess) = (sd.r_hat, sd.ess_bulk);
         r_max = if r.is_nan() || r_max.is_nan() { f64::NAN } else { r_max.max(r) };
         ess_min = ess_min.min(ess);
         if si == 0 {
@@ -669,20 +668,18 @@ pub fn sample(ev: &Evidence, model: &ModelConfig, svi: &Fitted, cfg: &NutsConfig
 }
 
 /// The largest R-hat and least bulk ESS over the reported scalars ([`reported`]) of one
-/// structure's draws `draws[chain][k]` (NaN R-hat when any is NaN). With `log = Some((structure
-/// index, cfg))`, each scalar outside `cfg`'s limits is a debug line with its chains' medians.
-fn diagnostics(density: &Density<'_>, draws: &[Vec<Vec<f64>>], reference: &[Option<nalgebra::Vector3<f64>>], model: &ModelConfig, log: Option<(usize, &NutsConfig)>) -> (f64, f64) {
+/// structure's draws `draws[chain][k]` (NaN R-hat when any is NaN). Each scalar outside `cfg`'s
+/// limits is a debug line with the structure's index `si` and its chains' medians.
+fn diagnostics(density: &Density<'_>, draws: &[Vec<Vec<f64>>], reference: &[Option<nalgebra::Vector3<f64>>], model: &ModelConfig, (si, cfg): (usize, &NutsConfig)) -> (f64, f64) {
     let per_draw: Vec<Vec<Vec<(String, f64)>>> = draws.iter().map(|c| c.iter().map(|x| reported(density, x, reference, model)).collect()).collect();
     let names: Vec<String> = per_draw.first().and_then(|c| c.first()).map(|d| d.iter().map(|(n, _)| n.clone()).collect()).unwrap_or_default();
     let (mut r_max, mut ess_min) = (1.0f64, f64::INFINITY);
     for (k, name) in names.iter().enumerate() {
         let chains: Vec<Vec<f64>> = per_draw.iter().map(|c| c.iter().map(|d| d[k].1).collect()).collect();
         let (r, ess) = rank_diagnostics(&chains);
-        if let Some((si, cfg)) = log {
-            if !(r_hat_ok(r, cfg) && ess_ok(ess, cfg)) {
-                let med: Vec<f64> = chains.iter().map(|c| estimate_from_draws(c).median).collect();
-                tracing::debug!("structure {si}: {name}: R-hat {r:.3}, bulk ESS {ess:.0}, chain medians {med:.4?}");
-            }
+        if !(r_hat_ok(r, cfg) && ess_ok(ess, cfg)) && tracing::enabled!(tracing::Level::DEBUG) {
+            let med: Vec<f64> = chains.iter().map(|c| estimate_from_draws(c).median).collect();
+            tracing::debug!("structure {si}: {name}: R-hat {r:.3}, bulk ESS {ess:.0}, chain medians {med:.4?}");
         }
         r_max = if r.is_nan() || r_max.is_nan() { f64::NAN } else { r_max.max(r) };
         ess_min = ess_min.min(ess);
