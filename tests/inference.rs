@@ -179,6 +179,7 @@ fn nuts_samples_the_model_svi_fitted() {
 /// A real door track (kinematic mode) with the low-rank mass matrix: chains whose diagnostics
 /// miss a limit go on by `draws` until `max_draws` (an unreachable R-hat limit forces every
 /// extension, and the report says so); with reachable limits they stop as soon as both hold.
+/// The report counts the draws every chain took (the divergence check's denominator).
 #[test]
 fn nuts_extends_chains_until_the_diagnostics_hold() {
     let mut cfg = Config::new();
@@ -191,10 +192,13 @@ fn nuts_extends_chains_until_the_diagnostics_hold() {
     let never = NutsConfig { max_draws: 300, r_hat_max: 0.5, ..base.clone() };
     let (_, report) = nuts::sample(&ev, &cfg.model, &fitted, &never).expect("NUTS runs");
     assert_eq!(report.draws, 300, "{report:?}");
+    // The divergences' denominator: every chain's draws (2 chains, one structure).
+    assert_eq!(report.total_draws, 600, "{report:?}");
     assert!(report.warnings.iter().any(|w| w.contains("R-hat")), "{report:?}");
     let easy = NutsConfig { max_draws: 300, r_hat_max: 10.0, ess_bulk_min: 1.0, divergence_share_max: 1.0, ..base };
     let (_, report) = nuts::sample(&ev, &cfg.model, &fitted, &easy).expect("NUTS runs");
     assert_eq!(report.draws, 100, "{report:?}");
+    assert_eq!(report.total_draws, 200, "{report:?}");
     assert!(report.warnings.is_empty(), "{report:?}");
 }
 

@@ -166,7 +166,8 @@ pub struct SamplerRow {
     pub r_hat_max: f64,
     pub ess_bulk_min: f64,
     pub divergences: u64,
-    /// Sampling draws, all chains and structures.
+    /// Sampling draws, all chains and structures (the sampler's `total_draws`: each structure
+    /// counted with the rounds it took).
     pub draws: u64,
     pub runtime_s: f64,
 }
@@ -310,7 +311,7 @@ fn score(o: &CorpusObject, layout: Layout, cfg: &Config, baselines: bool) -> Res
         r_hat_max: r.r_hat_max,
         ess_bulk_min: r.ess_bulk_min,
         divergences: r.divergences,
-        draws: r.chains as u64 * r.draws * r.structures.len() as u64,
+        draws: r.total_draws,
         runtime_s: r.runtime_s,
     });
     let calls = metrics

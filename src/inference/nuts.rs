@@ -127,6 +127,9 @@ pub struct SamplerReport {
     pub chains: usize,
     /// Sampling draws per chain (the most of any structure, extensions included).
     pub draws: u64,
+    /// Sampling draws over all chains and structures (structures may stop after different
+    /// rounds): the denominator of the divergence check.
+    pub total_draws: u64,
     /// Over every reported parameter (axis direction and point, kinodynamics, noise level) of
     /// every sampled structure: the largest R-hat and the least bulk ESS.
     pub r_hat_max: f64,
@@ -601,6 +604,7 @@ pub fn sample(ev: &Evidence, model: &ModelConfig, svi: &Fitted, cfg: &NutsConfig
     let mut report = SamplerReport {
         chains: cfg.chains.max(1),
         draws: 0,
+        total_draws: 0,
         r_hat_max: f64::NAN,
         ess_bulk_min: f64::NAN,
         divergences: 0,
@@ -652,6 +656,7 @@ pub fn sample(ev: &Evidence, model: &ModelConfig, svi: &Fitted, cfg: &NutsConfig
     }
     report.r_hat_max = r_max;
     report.ess_bulk_min = if ess_min.is_finite() { ess_min } else { f64::NAN };
+    report.total_draws = total;
     let total = total.max(1);
     if !r_hat_ok(report.r_hat_max, cfg) {
         report.warnings.push(format!("NUTS: R-hat {:.3} > {}", report.r_hat_max, cfg.r_hat_max));

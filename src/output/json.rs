@@ -89,6 +89,10 @@ pub struct ModelJson {
 pub struct SamplerJson {
     pub chains: usize,
     pub draws: u64,
+    /// Beyond the contract: sampling draws over all chains and structures (the divergences'
+    /// denominator; `chains * draws * structures` overstates it when structures stop after
+    /// different rounds).
+    pub total_draws: u64,
     pub r_hat_max: Option<f64>,
     pub ess_bulk_min: Option<f64>,
     pub divergences: u64,
@@ -114,6 +118,7 @@ fn sampler_json(run: &Run, s: &SamplerReport) -> SamplerJson {
     SamplerJson {
         chains: s.chains,
         draws: s.draws,
+        total_draws: s.total_draws,
         r_hat_max: finite(s.r_hat_max),
         ess_bulk_min: finite(s.ess_bulk_min),
         divergences: s.divergences,
