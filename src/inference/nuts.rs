@@ -615,7 +615,6 @@ pub fn sample(ev: &Evidence, model: &ModelConfig, svi: &Fitted, cfg: &NutsConfig
     };
     let mut posterior = svi.posterior.clone();
     let (mut r_max, mut ess_min) = (1.0f64, f64::INFINITY);
-    let mut total = 0u64;
     for (si, (structure, _)) in structs.iter().enumerate() {
         let density = Density::new(ev, model, structure.clone());
         // Reported scalars per chain and draw, axis directions flipped onto SVI's side.
@@ -625,7 +624,7 @@ pub fn sample(ev: &Evidence, model: &ModelConfig, svi: &Fitted, cfg: &NutsConfig
         let sd = sample_structure(&job, &diagnose)?;
         report.divergences += sd.divergences;
         report.draws = report.draws.max(sd.draws.iter().map(|d| d.len() as u64).min().unwrap_or(0));
-        total += sd.draws.iter().map(|d| d.len() as u64).sum::<u64>();
+        report.total_draws += sd.draws.iter().map(|d| d.len() as u64).sum::<u64>();
         let (r, ess) = (sd.r_hat, sd.ess_bulk);
         r_max = if r.is_nan() || r_max.is_nan() { f64::NAN } else { r_max.max(r) };
         ess_min = ess_min.min(ess);
@@ -656,8 +655,7 @@ pub fn sample(ev: &Evidence, model: &ModelConfig, svi: &Fitted, cfg: &NutsConfig
     }
     report.r_hat_max = r_max;
     report.ess_bulk_min = if ess_min.is_finite() { ess_min } else { f64::NAN };
-    report.total_draws = total;
-    let total = total.max(1);
+    let total = report.total_draws.max(1);
     if !r_hat_ok(report.r_hat_max, cfg) {
         report.warnings.push(format!("NUTS: R-hat {:.3} > {}", report.r_hat_max, cfg.r_hat_max));
     }
