@@ -196,10 +196,25 @@ fn nuts_extends_chains_until_the_diagnostics_hold() {
     assert_eq!(report.total_draws, 600, "{report:?}");
     assert!(report.warnings.iter().any(|w| w.contains("R-hat")), "{report:?}");
     let easy = NutsConfig { max_draws: 300, r_hat_max: 10.0, ess_bulk_min: 1.0, divergence_share_max: 1.0, ..base };
-    let (_, report) = nuts::sample(&ev, &cfg.model, &fitted, &easy).expect("NUTS runs");
+    let (post, report) = nuts::sample(&ev, &cfg.model, &fitted, &easy).expect("NUTS runs");
     assert_eq!(report.draws, 100, "{report:?}");
     assert_eq!(report.total_draws, 200, "{report:?}");
     assert!(report.warnings.is_empty(), "{report:?}");
+    // The door's residuals are correlated from frame to frame (perception errs in bursts), so
+    // SVI widens its axis by `n / n_eff`, and NUTS's reported spread carries the same widening:
+    // the same draws (same seeds) reported without it have the same axis, narrower by its root.
+    let door = fitted.posterior.joints.iter().position(|j| j.map_type.movable()).expect("the door moves");
+    let inflation = fitted.posterior.joints[door].axis.as_ref().expect("an axis").inflation;
+    assert!(inflation > 2.0, "n / n_eff {inflation}");
+    let mut plain = fitted.clone();
+    plain.posterior.joints[door].axis.as_mut().expect("an axis").inflation = 1.0;
+    let (narrow, _) = nuts::sample(&ev, &cfg.model, &plain, &easy).expect("NUTS runs");
+    let (w, n) = (post.joints[door].axis.as_ref().expect("an axis"), narrow.joints[door].axis.as_ref().expect("an axis"));
+    assert_eq!((w.inflation, n.inflation), (inflation, 1.0));
+    assert!((w.direction - n.direction).norm() < 1e-12, "{:?} vs {:?}", w.direction, n.direction);
+    let ratio = w.direction_sd_deg / n.direction_sd_deg;
+    assert!((ratio / inflation.sqrt() - 1.0).abs() < 1e-9, "spread ratio {ratio} for a variance inflation of {inflation}");
+    assert!((w.direction_q90_deg / n.direction_q90_deg / inflation.sqrt() - 1.0).abs() < 1e-9 && (w.point_sd_m / n.point_sd_m / inflation.sqrt() - 1.0).abs() < 1e-9, "{w:?} vs {n:?}");
 }
 
 /// `--inference` takes svi or nuts; anything else is a bad argument (exit 2, one line).

@@ -32,6 +32,13 @@ pub struct AxisSummary {
     pub point: Option<Vector3<f64>>,
     /// Root-mean-square distance of sampled points to `point` \[m\] (NaN when no point).
     pub point_sd_m: f64,
+    /// Factor (>= 1) by which the variance of the axis parameters' draws was widened before the
+    /// spreads were taken, for what the likelihood's independent frames leave out: in kinematic
+    /// mode `n / n_eff` of the part's residuals (perception's errors are correlated from frame to
+    /// frame; `svi::comparison_weights`), in dynamic mode the position inflation (`svi`'s
+    /// `position_inflation`); 1: none. BOM-NUTS widens its draws by the same factor, so that SVI
+    /// and NUTS differ only by the guide ([`nuts`] module docs).
+    pub inflation: f64,
 }
 
 /// Posterior summary of one positive scalar parameter (its SI unit).

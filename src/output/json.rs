@@ -32,6 +32,10 @@ pub struct AxisJson {
     pub direction_q90_deg: f64,
     pub point: Option<[f64; 3]>,
     pub point_sd_m: Option<f64>,
+    /// Factor (>= 1) by which the axis draws' variance was widened before the spreads were taken
+    /// (`n / n_eff` of the part's residuals in kinematic mode; beyond the contract's example;
+    /// [`crate::inference::AxisSummary::inflation`]).
+    pub variance_inflation: f64,
 }
 
 /// A kinodynamic parameter: median, sd and (beyond the contract's example) the 90% interval.
@@ -214,6 +218,7 @@ pub fn model_json(p: &Posterior) -> ModelJson {
                 direction_q90_deg: a.direction_q90_deg,
                 point: a.point.map(|p| [p.x, p.y, p.z]),
                 point_sd_m: finite(a.point_sd_m),
+                variance_inflation: a.inflation,
             }),
             com: {
                 let ty = j.axis.as_ref().filter(|_| j.map_type.movable()).map_or(j.map_type, |a| a.joint);
