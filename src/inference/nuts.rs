@@ -28,8 +28,8 @@
 //! frames, which a sampler cannot undo; the SVI-against-NUTS comparison then measures the guide
 //! alone. (Sampling the likelihood raised to `n_eff / n` instead, a coarsened posterior, gave the
 //! same cones on the corpus and direction spreads 3.6 times SVI's on the real tracks (median),
-//! where every frame's coordinate loses its observation too: README, "BOM-NUTS", stop 65.) The kinodynamic
-//! intervals and probabilities are the model's posterior, with no inflation.
+//! where every frame's coordinate loses its observation too: README, "BOM-NUTS", stop 65.) The
+//! kinodynamic intervals and the probabilities are the model's posterior, with no inflation.
 
 use std::collections::HashMap;
 use std::time::Instant;

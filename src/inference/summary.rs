@@ -161,10 +161,10 @@ pub fn axis_from_draws(joint: JointType, reference: &Vector3<f64>, draws: &[Join
 /// every sampled direction's angle to the estimate and every sampled point's distance to the
 /// estimated point times `sqrt(inflation)`, so the RMS angle, the 90% cone and the point spread
 /// scale by it and the estimate stays. Why in these terms and not in the standardised
-/// coordinates of the draws: a revolute direction is `v / |v|` of its coordinates `v`, whose
-/// length the data do not fix, so widening `v` about the draws' mean widens the angles by more
-/// than the factor wherever `|v|` varies (on `left_door_001`, NUTS's direction spread by 3.8
-/// for a factor of 1.6).
+/// coordinates of the draws: a joint's direction is `v / |v|` of its coordinates `v`
+/// ([`crate::model::prismatic`], [`crate::model::revolute`]), whose length the data do not fix,
+/// so widening `v` about the draws' mean widens the angles by more than the factor wherever
+/// `|v|` varies (on `left_door_001`, NUTS's direction spread by 3.8 for a factor of 1.6).
 pub fn widened(axis: AxisSummary, inflation: f64) -> AxisSummary {
     let inflation = inflation.max(1.0);
     let w = inflation.sqrt();
