@@ -368,7 +368,8 @@ const DIRECTION_LENGTH_LOG_SD: f64 = 0.25;
 /// guide keeps `N(0, I)`: the posterior of `v / |v|` is the same.
 pub fn direction_length_prior(v: [f64; 3]) -> (f64, [f64; 3]) {
     let r2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
-    if !(r2 > 0.0) {
+    // Zero or NaN: no direction.
+    if r2.is_nan() || r2 <= 0.0 {
         return (f64::NEG_INFINITY, [0.0; 3]);
     }
     let lr = 0.5 * r2.ln();
