@@ -33,8 +33,9 @@ pub struct WindowConfig {
     pub margin_after_s: f64,
     pub merge_gap_s: f64,
     pub min_duration_s: f64,
-    /// Dynamic mode: a break in the clouds longer than this \[s\] between two windows (separate
-    /// episodes, often of a reset object) cuts the tie of the later window's start to where the
+    /// A break in the clouds longer than this \[s\] (separate episodes, often of a reset object)
+    /// ends any window: a motion or force period never spans it (both modes). Dynamic mode: such
+    /// a break between two windows also cuts the tie of the later window's start to where the
     /// earlier one left the joint ([`crate::model::likelihood::Grid::max_unobserved_s`]).
     pub max_unobserved_s: f64,
     /// The live node keeps the evidence of at most this many most recent windows per pushed part
@@ -79,12 +80,28 @@ impl Window {
 }
 
 /// Hysteresis thresholding of a signal `(t, value)`: intervals where it rose above `open` until it
-/// stayed below `close` for `hold` seconds.
-fn hysteresis(signal: &[(f64, f64)], open: f64, close: f64, hold: f64) -> Vec<(f64, f64)> {
+/// stayed below `close` for `hold` seconds, or until the last sample before a break in the signal
+/// longer than `max_gap` seconds.
+///
+/// Why the break: a signal that is not there cannot say that something still moves or is still
+/// pushed. Bags of separate episodes replayed together leave minutes between their clouds; a span
+/// left open at the end of one episode (a registration's jitter above `close`) ran on into the
+/// next, and one kinematic window then covered both episodes and the gap, which thinned its
+/// evidence to `min_dt_s` over the whole of it (issue 24, class 2).
+fn hysteresis(signal: &[(f64, f64)], open: f64, close: f64, hold: f64, max_gap: f64) -> Vec<(f64, f64)> {
     let mut out = Vec::new();
     let mut start: Option<f64> = None;
     let mut below_since: Option<f64> = None;
+    let mut previous: Option<f64> = None;
     for &(t, v) in signal {
+        if let (Some(s), Some(p)) = (start, previous) {
+            if t - p > max_gap {
+                out.push((s, below_since.unwrap_or(p)));
+                start = None;
+                below_since = None;
+            }
+        }
+        previous = Some(t);
         match start {
             None if v > open => {
                 start = Some(t);
@@ -152,7 +169,7 @@ fn finish(mut spans: Vec<(f64, f64)>, cfg: &WindowConfig, t_min: f64, t_max: f64
 /// has stayed below `speed_close_mps` for `hold_s`.
 fn moving_spans(obs: &[PartObservation], cfg: &WindowConfig) -> Vec<(f64, f64)> {
     let track: Vec<(f64, Point3<f64>)> = obs.iter().map(|o| (o.stamp, o.com)).collect();
-    hysteresis(&speeds(&track, cfg.speed_span_s), cfg.speed_open_mps, cfg.speed_close_mps, cfg.hold_s)
+    hysteresis(&speeds(&track, cfg.speed_span_s), cfg.speed_open_mps, cfg.speed_close_mps, cfg.hold_s, cfg.max_unobserved_s)
 }
 
 /// Kinematic-mode windows: periods in which any of `tracks` (each one part's, in time order)
@@ -183,10 +200,10 @@ pub fn force_windows<'a>(
     t_max: f64,
 ) -> Vec<Window> {
     let signal: Vec<(f64, f64)> = wrenches.iter().map(|w| (w.stamp, w.force.norm())).collect();
-    let mut spans = hysteresis(&signal, cfg.force_open_n, cfg.force_close_n, cfg.hold_s);
+    let mut spans = hysteresis(&signal, cfg.force_open_n, cfg.force_close_n, cfg.hold_s, cfg.max_unobserved_s);
     if cfg.force_close_n < cfg.force_open_n {
         let overlaps = |a: (f64, f64), b: (f64, f64)| a.0 <= b.1 && b.0 <= a.1;
-        let light: Vec<(f64, f64)> = hysteresis(&signal, cfg.force_close_n, cfg.force_close_n, cfg.hold_s)
+        let light: Vec<(f64, f64)> = hysteresis(&signal, cfg.force_close_n, cfg.force_close_n, cfg.hold_s, cfg.max_unobserved_s)
             .into_iter()
             .filter(|&l| !spans.iter().any(|&s| overlaps(l, s)))
             .collect();
@@ -243,6 +260,33 @@ mod tests {
         // Above `force_open_n`, a push is a window whether or not anything moves.
         let strong: Vec<WrenchSample> = wrenches.iter().map(|w| WrenchSample { force: w.force * 2.0, ..w.clone() }).collect();
         assert_eq!(force_windows(&strong, [track(0.0).as_slice()], &cfg, 0.0, 6.0).len(), 1);
+    }
+
+    /// Two episodes replayed together, 300 s apart: the first recording stops while the part
+    /// still moves (as a registration's jitter above `speed_close_mps` also keeps a period open),
+    /// the second moves it again. The break in the clouds ends the first window; no window spans it.
+    #[test]
+    fn a_break_in_the_clouds_ends_a_window() {
+        let cfg = WindowConfig::default();
+        let mut track: Vec<PartObservation> = (0..120)
+            .map(|i| {
+                let t = i as f64 / 30.0;
+                obs(t, 0.1 * (t - 1.0).max(0.0))
+            })
+            .collect();
+        track.extend((0..120).map(|i| {
+            let t = 300.0 + i as f64 / 30.0;
+            obs(t, 0.1 * (t - 301.5).clamp(0.0, 1.0))
+        }));
+        let mut tracks = PartTracks::new();
+        tracks.insert(1, track);
+        let w = motion_windows(tracks.values().map(Vec::as_slice), &cfg);
+        assert_eq!(w.len(), 2, "{w:?}");
+        assert!(w[0].end < 5.0 && w[1].start > 300.0, "{w:?}");
+        // Without the break the first window runs on through the 296 s without clouds.
+        let joined = WindowConfig { max_unobserved_s: 1e9, ..cfg };
+        let w = motion_windows(tracks.values().map(Vec::as_slice), &joined);
+        assert!(w[0].end > 299.0, "{w:?}");
     }
 
     #[test]

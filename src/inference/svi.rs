@@ -1003,6 +1003,12 @@ fn fit_from(
             })
             .collect()
     };
+    // Whether the joint types are compared on `n_eff / n` of each part's frames.
+    let coarsen = match cfg.coarsen {
+        Coarsen::Off => false,
+        Coarsen::Kinematic | Coarsen::Report => ev.windows.is_empty(),
+        Coarsen::All => true,
+    };
     let mut phase = 1;
     if let Some(w) = warm {
         // Carry the previous fit over, but keep the data's initialisation for a block that
@@ -1017,13 +1023,28 @@ fn fit_from(
         // drawer's prismatic joint move the cabinet too, so the drawer stayed rigid with P = 1.00
         // after the window that pushed it (corpus object 57 of the tune split); natural-gradient
         // steps change one factor at a time and cannot leave such a joint optimum.
-        for i in 0..n {
+        //
+        // Likewise, where the joint types are compared on `n_eff / n` (kinematic mode,
+        // [`comparison_weights`]), a part the previous fit called rigid that the data of all
+        // windows now call movable takes its joint-type factor from the data. The weight is
+        // estimated from the residuals under the part's most probable type: under a rigid joint
+        // that has stopped fitting a part that now moves, those residuals are the motion itself,
+        // correlated from frame to frame, so the weight collapsed and with it the
+        // evidence that would have overturned the type (tune object 9, four separate episodes: a
+        // drawer first pulled in the fourth stayed rigid at P = 0.96, its weight 0.067; fitted
+        // afresh on all four it is prismatic, and from the data's type factor its weight is 0.59
+        // and it is prismatic).
+        for (i, &start_type) in start_types.iter().enumerate() {
             let o = layout.parent_logits[i];
             let warm_parent = (0..=n).filter(|&j| j != i + 1).max_by(|&a, &b| theta[o + a].total_cmp(&theta[o + b])).unwrap_or(0);
+            let t = layout.type_logits[i];
+            let warm_type = (0..3).max_by(|&a, &b| theta[t + a].total_cmp(&theta[t + b])).unwrap_or(0);
             if warm_parent != start.parent[i] {
                 tracing::debug!("part {}: warm parent {warm_parent} differs from the start tree's {}; discrete factors from the data", ev.parts[i].label, start.parent[i]);
                 theta[o..o + n + 1].copy_from_slice(&data[o..o + n + 1]);
-                let t = layout.type_logits[i];
+                theta[t..t + 3].copy_from_slice(&data[t..t + 3]);
+            } else if coarsen && warm_type == 0 && start_type != 0 {
+                tracing::debug!("part {}: rigid in the previous fit, movable in the start structure; type factor from the data", ev.parts[i].label);
                 theta[t..t + 3].copy_from_slice(&data[t..t + 3]);
             }
         }
@@ -1053,11 +1074,6 @@ fn fit_from(
     }
     let cand: Vec<Vec<usize>> = (0..n).map(|i| (0..=n).filter(|&j| j != i + 1).collect()).collect();
     // Per part, the weight of its conditional ELBOs in its joint type's target.
-    let coarsen = match cfg.coarsen {
-        Coarsen::Off => false,
-        Coarsen::Kinematic | Coarsen::Report => ev.windows.is_empty(),
-        Coarsen::All => true,
-    };
     let mut zeta = if coarsen {
         let parents = if phase == 1 { start.parent.clone() } else { map_tree(&theta) };
         let types = if phase == 1 { start_types.clone() } else { map_types(&theta) };
