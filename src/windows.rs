@@ -11,7 +11,8 @@
 //!   period ends once the speed has stayed below `speed_close_mps` for `hold_s`. Periods of all
 //!   parts are joined, extended by the margins, and windows closer than `merge_gap_s` merged.
 //!
-//! Windows shorter than `min_duration_s` are dropped.
+//! In both modes a break in the signal longer than `max_unobserved_s` (separate episodes replayed
+//! together) ends a period at its last sample. Windows shorter than `min_duration_s` are dropped.
 
 use nalgebra::Point3;
 use serde::{Deserialize, Serialize};
