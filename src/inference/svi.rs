@@ -808,6 +808,11 @@ pub struct Fitted {
     pub guide: GuideState,
     /// What a later fit warm-starts from (see [`fit`]).
     pub warm: WarmStart,
+    /// Per part (evidence order), the factor on a difference of ELBO \[nats\] in its reported
+    /// joint-type log-odds: `report_rate * n_eff / n` in dynamic mode with [`Coarsen::Report`],
+    /// `n_eff / n` where the fit itself compares types on `n_eff` frames, 1 elsewhere. [`fit`]
+    /// weighs the other starts' joint types by it.
+    pub type_scale: Vec<f64>,
 }
 
 /// The guides a fit warm-starts from: one per start of [`fit`], each its own start's previous
@@ -843,7 +848,9 @@ impl WarmStart {
 /// fitted when its structure differs from BIC's (tree or best joint types) or its previous fit
 /// did; the runner-up whenever there is one that differs from both. The fit with the highest
 /// ELBO is reported: the ELBO is `log p(data)` less the KL from the guide to the posterior, so
-/// the higher one is the closer approximation. A start whose fit agrees with the BIC start's on
+/// the higher one is the closer approximation. The other starts' ELBOs can raise the probability
+/// of the alternatives their fits end in (tempered as the joint types are; see
+/// `weigh_other_starts`); the calls, axes and kinodynamics are the winner's. A start whose fit agrees with the BIC start's on
 /// the most probable tree and joint types goes on from the BIC start's fit (the runner-up too:
 /// started from the data alone at every update, its fit won on `tune` where the tree it starts
 /// from is wrong, a flap riding a slider re-hung from the fixed frame as a prismatic joint).
@@ -924,14 +931,81 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Wa
         per_frame_fit.as_ref().map_or(String::new(), |f| format!(", {:.1} (per-frame)", f.posterior.elbo)),
         runner.as_ref().map_or(String::new(), |f| format!(", {:.1} (runner-up)", f.posterior.elbo))
     );
+    let mut losers = Vec::new();
     for other in [per_frame_fit, runner].into_iter().flatten() {
         if other.posterior.elbo > fitted.posterior.elbo {
-            fitted = other;
+            losers.push(std::mem::replace(&mut fitted, other));
+        } else {
+            losers.push(other);
         }
     }
+    let others: Vec<&Posterior> = losers.iter().map(|f| &f.posterior).collect();
+    weigh_other_starts(&mut fitted.posterior, &fitted.type_scale, &others);
     fitted.warm = warm_next;
     fitted.posterior.runtime_s = started.elapsed().as_secs_f64();
     Some(fitted)
+}
+
+/// Let the other starts' fits raise the reported probabilities of the alternatives they found,
+/// in the posterior of the winner `best` (the start with the highest ELBO, whose calls, axes and
+/// kinodynamics are kept).
+///
+/// A start's ELBO is a lower bound on the log evidence of the structure its fit ends in (its
+/// guide's own discrete factors, on every frame, all but certain of it), and so on the log
+/// evidence of each of that structure's factors, e.g. `log p(data, type_i = k) >= log p(data,
+/// structure) >= ELBO` for a structure in which part `i` is of type `k` (the other factors
+/// marginalised out can only add mass). The winner's own guide holds another estimate of each
+/// alternative: its log-odds against the part's call. Of two lower bounds the larger is the
+/// tighter, so each alternative's log-odds is the larger of the winner's and `-s (ELBO_best -
+/// ELBO_start)`, on the scale of the reported probabilities: for joint types `s` is the part's
+/// `type_scale` in the winner's fit (the tempering of the type comparison within one fit,
+/// `report_rate * n_eff / n` in dynamic mode), for parents 1 (compared on every frame, as within
+/// one fit). No alternative rises above the call, so the calls stay the most probable entries.
+///
+/// Why: the mean-field guide moves one discrete factor at a time, and a start that ends in another
+/// tree holds alternatives the winner's guide puts at P = 0.00, where its ELBO gap says otherwise
+/// (`tune` object 90, continuous: the latch called prismatic at P = 0.994 on its door; the
+/// runner-up start, 256 nats below, ends with the latch revolute and puts the call at 0.79).
+fn weigh_other_starts(best: &mut Posterior, best_scale: &[f64], others: &[&Posterior]) {
+    let log_odds = |p: &[f64]| -> Vec<f64> {
+        // A probability of 0 stays 0 (log-odds -inf) unless a start raises it.
+        let top = p.iter().cloned().fold(f64::MIN_POSITIVE, f64::max);
+        p.iter().map(|v| (v / top).ln()).collect()
+    };
+    // `None` where nothing is left to normalise (then the winner's own probabilities stay).
+    let normalise = |l: &[f64]| -> Option<Vec<f64>> {
+        let z: f64 = l.iter().map(|v| v.exp()).sum();
+        (z.is_finite() && z > 0.0).then(|| l.iter().map(|v| v.exp() / z).collect())
+    };
+    for (i, j) in best.joints.iter_mut().enumerate() {
+        let s = best_scale.get(i).copied().unwrap_or(1.0);
+        let mut types = log_odds(&j.type_probs);
+        let probs: Vec<f64> = j.parent_probs.iter().map(|x| x.1).collect();
+        let mut parents = log_odds(&probs);
+        for o in others {
+            let Some(oj) = o.joints.get(i).filter(|oj| oj.child == j.child) else { continue };
+            let gap = (best.elbo - o.elbo).max(0.0);
+            if !gap.is_finite() {
+                continue;
+            }
+            let k = oj.map_type.index();
+            if -s * gap > types[k] {
+                tracing::debug!("part {}: the start {gap:.1} nats below raises {} to {:.2} nats", j.child, oj.map_type.name(), -s * gap);
+                types[k] = -s * gap;
+            }
+            if let Some(m) = j.parent_probs.iter().position(|x| x.0 == oj.parent) {
+                parents[m] = parents[m].max(-gap);
+            }
+        }
+        if let Some(t) = normalise(&types) {
+            j.type_probs = [t[0], t[1], t[2]];
+        }
+        if let Some(p) = normalise(&parents) {
+            for (x, p) in j.parent_probs.iter_mut().zip(p) {
+                x.1 = p;
+            }
+        }
+    }
 }
 
 /// The most probable parent and joint type of every part.
@@ -1439,8 +1513,14 @@ fn fit_from(
     // natural-gradient average, clipped at `discrete_floor_nats`) and the final phase's mean
     // conditional ELBOs (unclipped, but not what the fit's steps followed), so that the
     // reported most probable type is the fit's.
-    let reported_type_logits: Vec<[f64; 3]> = if cfg.coarsen == Coarsen::Report && !ev.windows.is_empty() && avg_count > 0 {
-        let weights = comparison_weights(ev, &layout, &report, &best_tree, &best_types, model);
+    let report_weights = (cfg.coarsen == Coarsen::Report && !ev.windows.is_empty() && avg_count > 0)
+        .then(|| comparison_weights(ev, &layout, &report, &best_tree, &best_types, model));
+    // What one nat of ELBO is worth in each part's reported joint-type probabilities.
+    let type_scale: Vec<f64> = match &report_weights {
+        Some(w) => w.iter().map(|z| cfg.report_rate * z).collect(),
+        None => zeta.clone(),
+    };
+    let reported_type_logits: Vec<[f64; 3]> = if let Some(weights) = &report_weights {
         (0..n)
             .map(|i| {
                 let (l, top, f) = (&type_logits[i], best_types[i], f_avg[i].map(|v| v / avg_count as f64));
@@ -1496,7 +1576,7 @@ fn fit_from(
     let posterior = Posterior { joints, elbo, iterations: iters, runtime_s: started.elapsed().as_secs_f64() };
     let labels = ev.parts.iter().map(|p| p.label).collect();
     let guide = GuideState { labels, times: ev.times.clone(), layout, theta };
-    Some(Fitted { posterior, warm: WarmStart::from_guide(guide.clone()), guide })
+    Some(Fitted { posterior, warm: WarmStart::from_guide(guide.clone()), guide, type_scale })
 }
 
 fn log_sum_exp(v: &[f64]) -> f64 {
@@ -1520,6 +1600,50 @@ mod tests {
     use crate::model::JointType;
     use nalgebra::Matrix3;
     use crate::model::likelihood::{PartSeries, PositionObs, RotationObs};
+    use crate::inference::JointSummary;
+
+    /// A posterior of two parts (labels 1 and 2), part 2 of the given type on the given parent.
+    fn two_parts(elbo: f64, type2: JointType, parent2: u32) -> Posterior {
+        let params = JointParams { joint: JointType::Rigid, com: Vector3::zeros(), noise: 0.01, rot_noise: 0.01, direction: Vector3::z(), point: Vector3::zeros(), radius: 0.0 };
+        let joint = |child: u32, parent: u32, t: JointType| {
+            let mut type_probs = [0.005; 3];
+            type_probs[t.index()] = 0.99;
+            let parent_probs = [0u32, 1, 2].iter().filter(|&&l| l != child).map(|&l| (l, if l == parent { 0.98 } else { 0.02 })).collect();
+            JointSummary { child, parent, parent_index: parent as usize, parent_probs, type_probs, map_type: t, axis: None, kinodynamics: None, mean_params: [params; 3], coordinates: Default::default() }
+        };
+        Posterior { joints: vec![joint(1, 0, JointType::Revolute), joint(2, parent2, type2)], elbo, iterations: 0, runtime_s: 0.0 }
+    }
+
+    /// Another start raises the alternatives it ends in to its tempered ELBO gap (types) or its
+    /// ELBO gap (parents) where that is above the winner's own log-odds; the calls stay.
+    #[test]
+    fn other_starts_raise_their_alternatives_to_their_elbo_gap() {
+        let scale = [0.1, 0.1];
+        let best = two_parts(100.0, JointType::Revolute, 0);
+        let softmax = |l: &[f64]| -> Vec<f64> { let z: f64 = l.iter().map(|v| v.exp()).sum(); l.iter().map(|v| v.exp() / z).collect() };
+        let close = |a: &[f64], b: &[f64]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-9);
+        let own = (0.005f64 / 0.99).ln();
+        // 10 nats below: the prismatic call rises to -1 nat on the reported scale, not the parent.
+        let mut raised = best.clone();
+        weigh_other_starts(&mut raised, &scale, &[&two_parts(90.0, JointType::Prismatic, 1)]);
+        let j = &raised.joints[1];
+        assert!(close(&j.type_probs, &softmax(&[own, -1.0, 0.0])), "{:?}", j.type_probs);
+        assert!(close(&[j.parent_probs[0].1, j.parent_probs[1].1], &[0.98, 0.02]), "{:?}", j.parent_probs);
+        assert_eq!((j.map_type, j.parent), (JointType::Revolute, 0));
+        assert!(close(&raised.joints[0].type_probs, &best.joints[0].type_probs));
+        // 2 nats below: the parent it ends in rises to -2 nats.
+        let mut raised = best.clone();
+        weigh_other_starts(&mut raised, &scale, &[&two_parts(98.0, JointType::Prismatic, 1)]);
+        let j = &raised.joints[1];
+        assert!(close(&[j.parent_probs[0].1, j.parent_probs[1].1], &softmax(&[0.0, -2.0])), "{:?}", j.parent_probs);
+        // Of two starts in the same structure the higher one speaks; one far below changes nothing.
+        let mut twice = best.clone();
+        weigh_other_starts(&mut twice, &scale, &[&two_parts(80.0, JointType::Prismatic, 1), &two_parts(90.0, JointType::Prismatic, 1)]);
+        assert!(close(&twice.joints[1].type_probs, &softmax(&[own, -1.0, 0.0])));
+        let mut far = best.clone();
+        weigh_other_starts(&mut far, &scale, &[&two_parts(-900.0, JointType::Prismatic, 1)]);
+        assert!(close(&far.joints[1].type_probs, &best.joints[1].type_probs));
+    }
 
     /// The lag-1 autocorrelation of AR(1) series of the length of a window's deviations is
     /// recovered to its small-sample bias; the inflation factor follows it.

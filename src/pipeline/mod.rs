@@ -218,7 +218,7 @@ pub fn replay(bags: &[PathBuf], cfg: &Config) -> Result<Run, ReplayError> {
         let t = Instant::now();
         let src = EvidenceSource { tracks: &tracks, geometry: &geometry, windows: &windows, wrenches: &recording.wrenches };
         let ev = src.evidence(&effects, cfg);
-        let svi_fit = svi::Fitted { posterior: post.clone(), guide, warm };
+        let svi_fit = svi::Fitted { posterior: post.clone(), guide, warm, type_scale: Vec::new() };
         match nuts::sample(&ev, &cfg.model, &svi_fit, &cfg.nuts) {
             Ok((p, report)) => {
                 for w in &report.warnings {
