@@ -850,10 +850,11 @@ impl WarmStart {
 /// ELBO is reported: the ELBO is `log p(data)` less the KL from the guide to the posterior, so
 /// the higher one is the closer approximation. The other starts' ELBOs can raise the probability
 /// of the alternatives their fits end in (tempered as the joint types are; see
-/// `weigh_other_starts`); the calls, axes and kinodynamics are the winner's. A start whose fit agrees with the BIC start's on
-/// the most probable tree and joint types goes on from the BIC start's fit (the runner-up too:
-/// started from the data alone at every update, its fit won on `tune` where the tree it starts
-/// from is wrong, a flap riding a slider re-hung from the fixed frame as a prismatic joint).
+/// `weigh_other_starts`); the calls, axes and kinodynamics are the winner's. A start whose fit
+/// agrees with the BIC start's on the most probable tree and joint types goes on from the BIC
+/// start's fit (the runner-up too: started from the data alone at every update, its fit won on
+/// `tune` where the tree it starts from is wrong, a flap riding a slider re-hung from the fixed
+/// frame as a prismatic joint).
 ///
 /// Why: the mean-field steps change one discrete factor at a time, and either start can trap the
 /// fit in a joint optimum of tree and types that the other avoids (corpus validation object 44:
@@ -960,10 +961,11 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Wa
 /// ELBO_start)`, on the scale of the reported probabilities: for joint types `s` is the part's
 /// `type_scale` in the winner's fit (the tempering of the type comparison within one fit,
 /// `report_rate * n_eff / n` in dynamic mode), for parents 1 (compared on every frame, as within
-/// one fit). No alternative rises above the call, so the calls stay the most probable entries.
+/// one fit). No alternative rises above the winner's most probable entry (log-odds 0), so a call
+/// that was its part's most probable type or parent stays so, and its probability can only fall.
 ///
 /// Why: the mean-field guide moves one discrete factor at a time, and a start that ends in another
-/// tree holds alternatives the winner's guide puts at P = 0.00, where its ELBO gap says otherwise
+/// tree holds alternatives the winner's guide puts at P ~ 0, where its ELBO gap says otherwise
 /// (`tune` object 90, continuous: the latch called prismatic at P = 0.994 on its door; the
 /// runner-up start, 256 nats below, ends with the latch revolute and puts the call at 0.79).
 fn weigh_other_starts(best: &mut Posterior, best_scale: &[f64], others: &[&Posterior]) {
