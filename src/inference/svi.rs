@@ -975,10 +975,7 @@ fn weigh_other_starts(best: &mut Posterior, best_scale: &[f64], others: &[&Poste
         p.iter().map(|v| (v / top).ln()).collect()
     };
     // `None` where nothing is left to normalise (then the winner's own probabilities stay).
-    let normalise = |l: &[f64]| -> Option<Vec<f64>> {
-        let z: f64 = l.iter().map(|v| v.exp()).sum();
-        (z.is_finite() && z > 0.0).then(|| l.iter().map(|v| v.exp() / z).collect())
-    };
+    let normalise = |l: &[f64]| -> Option<Vec<f64>> { Some(softmax(l)).filter(|p| p.iter().all(|v| v.is_finite())) };
     for (i, j) in best.joints.iter_mut().enumerate() {
         let s = best_scale.get(i).copied().unwrap_or(1.0);
         let mut types = log_odds(&j.type_probs);
@@ -1622,7 +1619,6 @@ mod tests {
     fn other_starts_raise_their_alternatives_to_their_elbo_gap() {
         let scale = [0.1, 0.1];
         let best = two_parts(100.0, JointType::Revolute, 0);
-        let softmax = |l: &[f64]| -> Vec<f64> { let z: f64 = l.iter().map(|v| v.exp()).sum(); l.iter().map(|v| v.exp() / z).collect() };
         let close = |a: &[f64], b: &[f64]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-9);
         let own = (0.005f64 / 0.99).ln();
         // 10 nats below: the prismatic call rises to -1 nat on the reported scale, not the parent.
