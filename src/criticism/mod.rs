@@ -13,7 +13,8 @@
 //!    phase of the push it falls in ([`Pattern`]).
 //! 2. **Diagnosis**: when the held-out centre-of-mass RMSE exceeds what the observation noise
 //!    explains, the joint is refitted with each candidate effect of [`crate::model::effects`]
-//!    (spring, joint limit below, above or both, gravity, quadratic damping) and the candidates are compared by
+//!    (spring, joint limit below, above or both, gravity, quadratic damping; a spring and quadratic
+//!    damping also started strong and weak) and the candidates are compared by
 //!    evidence — the ELBO of the Laplace guide, whose standard-normal priors carry the Occam factor
 //!    of the extra parameters — and by held-out error. An effect is adopted only when its ELBO gain
 //!    is decisive (`decisive_nats`, default 10 nats: a Bayes factor above 20,000, where Jeffreys
@@ -323,6 +324,30 @@ fn effects_off(effects: &EffectSet) -> Vec<f64> {
     x
 }
 
+/// Starts of the effects' standardised parameters (the layout of [`dynamics::decode`] after the
+/// base four): at their prior medians; switched off ([`effects_off`]); and, since the effects
+/// span decades (issue 25: springs of 0.1-20 N·m/rad), a spring and quadratic damping two prior
+/// sds stronger and weaker (a factor `exp(2 log_sd)` either way, 20 with the default log-sds of
+/// 1.5). Newton's method from the priors' medians alone stops in the nearest basin; a candidate's
+/// ELBO is that of the best mode found. (Starting the spring's rest at the ends of the observed
+/// travel too was measured and not kept: README, "Model criticism on objects and effects it was
+/// not tuned on".)
+fn effect_starts(effects: &EffectSet) -> Vec<Vec<f64>> {
+    let n = effects.num_params();
+    let mut starts = vec![vec![0.0; n], effects_off(effects)];
+    // The spring's parameters come first (stiffness, then its rest, left at the reference), the
+    // quadratic damping coefficient last.
+    let slots = [effects.spring.then_some(0), effects.quadratic_damping.then(|| n - 1)];
+    for slot in slots.into_iter().flatten() {
+        for k in [-2.0, 2.0] {
+            let mut x = vec![0.0; n];
+            x[slot] = k;
+            starts.push(x);
+        }
+    }
+    starts
+}
+
 /// Standardised kinodynamic parameters to start from: the posterior's damping, friction and mass
 /// medians, the deviation at its prior median, effects' parameters at their prior medians.
 fn initial_xi(post: &Posterior, i: usize, effects: EffectSet, cfg: &DynamicsConfig) -> Vec<f64> {
@@ -337,16 +362,15 @@ fn initial_xi(post: &Posterior, i: usize, effects: EffectSet, cfg: &DynamicsConf
     x
 }
 
-/// Fit `effects` to all windows (Laplace's method from two starts: the effects at their prior
-/// medians, and switched off at the base model's parameters) and predict each window held out of
-/// a refit to the others. A window is held out only if another one pushes the part: a push alone
-/// identifies the joint's damping and friction.
+/// Fit `effects` to all windows (Laplace's method from each of [`effect_starts`], the base
+/// model's parameters for the base four; the fit with the highest log density) and predict each
+/// window held out of a refit to the others. A window is held out only if another one pushes the
+/// part: a push alone identifies the joint's damping and friction.
 fn candidate(series: &JointSeries, times: &[f64], effects: EffectSet, base: &[f64], dyncfg: &DynamicsConfig) -> Candidate {
     let all = |_: usize| true;
     let mut post = |x: &[f64]| series.log_posterior(x, effects, &all, dyncfg);
     let mut fit: Option<LaplaceFit> = None;
-    let off = effects_off(&effects);
-    for start in [vec![0.0; off.len()], off] {
+    for start in effect_starts(&effects) {
         let mut x: Vec<f64> = base[..4].to_vec();
         x.extend(start);
         coarse_grid(&mut post, &mut x);
@@ -436,5 +460,30 @@ fn named_params(series: &JointSeries, x: &[f64], effects: &EffectSet, kind: Effe
             .unwrap_or_default(),
         EffectKind::Gravity => vec![("mass".into(), kp.mass)],
         EffectKind::QuadraticDamping => vec![("coefficient".into(), kp.quadratic_damping)],
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn candidates_start_where_effects_live() {
+        // A spring alone: two parameters (stiffness, rest), four starts.
+        let spring = EffectSet::default().with(EffectKind::Spring, None);
+        let starts = effect_starts(&spring);
+        assert_eq!(starts.len(), 4);
+        assert!(starts.contains(&vec![0.0, 0.0]) && starts.contains(&effects_off(&spring)));
+        // Stiff and weak by two prior sds, resting at the reference.
+        assert!(starts.contains(&vec![2.0, 0.0]) && starts.contains(&vec![-2.0, 0.0]));
+        // Quadratic damping after a one-sided stop (position, contact stiffness): its
+        // coefficient is the last parameter, started two sds either way.
+        let qd = EffectSet::default().with(EffectKind::JointLimit, Some(LimitSpec { lower: None, upper: Some(0.0) })).with(EffectKind::QuadraticDamping, None);
+        let starts = effect_starts(&qd);
+        assert_eq!(starts.len(), 4);
+        assert!(starts.iter().all(|x| x.len() == 3));
+        assert!(starts.contains(&vec![0.0, 0.0, 2.0]) && starts.contains(&vec![0.0, 0.0, -2.0]));
+        // Effects without such parameters keep the two starts.
+        assert_eq!(effect_starts(&EffectSet::default().with(EffectKind::Gravity, None)).len(), 2);
     }
 }
