@@ -70,7 +70,8 @@ impl Default for WindowConfig {
 pub struct Window {
     pub start: f64,
     pub end: f64,
-    /// The pushed part (dynamic mode), set by the caller from the contact point.
+    /// The pushed part (dynamic mode), set by the caller from the contact point over the push's
+    /// clouds ([`crate::perception::ContactVotes`]).
     pub pushed_part: Option<u32>,
 }
 

@@ -551,9 +551,112 @@ pub fn nearest_part(cloud: &CloudFrame, point: &Point3<f64>) -> Option<(u32, f64
         .min_by(|a, b| a.1.total_cmp(&b.1))
 }
 
+/// The pushed part of one push, from every cloud seen while it lasts (contract section 1: "the
+/// pushed part is the one whose points lie nearest to the contact point").
+///
+/// The contact point stays on the pushed part's surface for the whole push, while the hand that
+/// pushes hides that part from the camera in some clouds — often in the one nearest the push's
+/// first sample, where a single cloud then names a neighbour (`obj006` of the effects corpus: a
+/// flap's push given to the drawer below it, whose nearest point was 21 cm from the contact).
+/// So each cloud of the push gives every part seen in it the distance \[m\] from the contact
+/// point at that cloud's stamp to the part's nearest point, and the part with the smallest
+/// median of those distances, over the clouds it is seen in, is the pushed one (ties: the part
+/// seen in more clouds, then the lower label).
+///
+/// At most [`ContactVotes::MAX_CLOUDS`] clouds are kept (a push held that long has long named
+/// its part); later ones are ignored.
+#[derive(Debug, Clone, Default)]
+pub struct ContactVotes {
+    /// Label -> the nearest point's distance \[m\] in each cloud the part is seen in.
+    distances: BTreeMap<u32, Vec<f64>>,
+    clouds: usize,
+}
+
+impl ContactVotes {
+    /// Clouds kept per push (about 8 s of a 30 Hz camera).
+    pub const MAX_CLOUDS: usize = 256;
+
+    /// Add `cloud` with the contact point `point` \[m, fixed frame\] at its stamp. Non-finite
+    /// distances (a NaN point that got through) are skipped.
+    pub fn add(&mut self, cloud: &CloudFrame, point: &Point3<f64>) {
+        if self.clouds >= Self::MAX_CLOUDS {
+            return;
+        }
+        let mut nearest: BTreeMap<u32, f64> = BTreeMap::new();
+        for (p, l) in cloud.points.iter().zip(&cloud.labels) {
+            let d = (p - point).norm();
+            if d.is_finite() {
+                let e = nearest.entry(*l).or_insert(f64::INFINITY);
+                *e = e.min(d);
+            }
+        }
+        if nearest.is_empty() {
+            return;
+        }
+        self.clouds += 1;
+        for (l, d) in nearest {
+            self.distances.entry(l).or_default().push(d);
+        }
+    }
+
+    /// Clouds added.
+    pub fn clouds(&self) -> usize {
+        self.clouds
+    }
+
+    /// The pushed part: the smallest median distance (`None` before any cloud).
+    pub fn part(&self) -> Option<u32> {
+        let median = |v: &[f64]| {
+            let mut s = v.to_vec();
+            s.sort_by(f64::total_cmp);
+            let n = s.len();
+            if n % 2 == 1 { s[n / 2] } else { 0.5 * (s[n / 2 - 1] + s[n / 2]) }
+        };
+        self.distances
+            .iter()
+            .map(|(l, v)| (*l, median(v), v.len()))
+            .min_by(|a, b| a.1.total_cmp(&b.1).then(b.2.cmp(&a.2)).then(a.0.cmp(&b.0)))
+            .map(|(l, _, _)| l)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A flap (label 3) pushed while the hand hides it in the push's first cloud, where the drawer
+    /// below it (label 4) is nearest the contact point; in the later clouds the flap carries the
+    /// contact point. One cloud names the drawer, the push's clouds together the flap.
+    #[test]
+    fn the_clouds_of_a_push_name_the_part_the_hand_hides_at_first() {
+        let patch = |c: Point3<f64>, label: u32| -> Vec<(Point3<f64>, u32)> {
+            (0..9).map(|i| (c + Vector3::new((i % 3) as f64 * 0.01, (i / 3) as f64 * 0.01, 0.0), label)).collect()
+        };
+        let frame = |t: f64, flap_seen: bool, contact: Point3<f64>| {
+            let mut pts = patch(Point3::new(0.0, 0.0, 0.5), 4);
+            if flap_seen {
+                pts.extend(patch(contact, 3));
+            }
+            CloudFrame { stamp: t, points: pts.iter().map(|p| p.0).collect(), labels: pts.iter().map(|p| p.1).collect(), viewpoint: None }
+        };
+        // The contact point moves with the flap, 20 cm above the drawer.
+        let contact = |k: usize| Point3::new(0.0, 0.01 * k as f64, 0.7);
+        let first = frame(0.0, false, contact(0));
+        assert_eq!(nearest_part(&first, &contact(0)).map(|p| p.0), Some(4), "one cloud: the drawer");
+        let mut votes = ContactVotes::default();
+        assert_eq!(votes.part(), None);
+        votes.add(&first, &contact(0));
+        for k in 1..6 {
+            votes.add(&frame(k as f64 / 30.0, k % 2 == 0, contact(k)), &contact(k));
+        }
+        assert_eq!(votes.clouds(), 6);
+        assert_eq!(votes.part(), Some(3), "the push's clouds: the flap");
+        // Bounded: clouds past the limit are not kept.
+        for k in 0..ContactVotes::MAX_CLOUDS {
+            votes.add(&first, &contact(k));
+        }
+        assert_eq!(votes.clouds(), ContactVotes::MAX_CLOUDS);
+    }
 
     #[test]
     fn observability_follows_the_shape() {

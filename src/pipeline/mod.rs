@@ -374,7 +374,8 @@ fn find_windows(rec: &Recording, tracks: &PartTracks, cfg: &Config, diag: &mut D
     } else {
         let mut ws = windows::force_windows(&rec.wrenches, tracks.values().map(Vec::as_slice), &cfg.windows, t_min, t_max);
         for w in &mut ws {
-            w.pushed_part = pushed_part(rec, w, cfg.windows.force_open_n).or_else(|| pushed_part(rec, w, cfg.windows.force_close_n));
+            w.pushed_part =
+                pushed_part(rec, w, cfg.windows.force_open_n, cfg.windows.force_close_n).or_else(|| pushed_part(rec, w, cfg.windows.force_close_n, cfg.windows.force_close_n));
         }
         ws
     };
@@ -385,10 +386,27 @@ fn find_windows(rec: &Recording, tracks: &PartTracks, cfg: &Config, diag: &mut D
     ws
 }
 
-/// The part nearest the contact point of the first wrench sample in `w` above `threshold` \[N\]
-/// (contract section 1), in the cloud nearest that sample in time.
-fn pushed_part(rec: &Recording, w: &Window, threshold: f64) -> Option<u32> {
-    let contact = rec.wrenches.iter().find(|s| w.contains(s.stamp) && s.force.norm() > threshold)?;
-    let cloud: &CloudFrame = rec.clouds.iter().min_by(|a, b| (a.stamp - contact.stamp).abs().total_cmp(&(b.stamp - contact.stamp).abs()))?;
-    perception::nearest_part(cloud, &contact.point).map(|(l, _)| l)
+/// The pushed part of window `w`: the push starts at the first wrench sample in `w` above
+/// `threshold` \[N\] and lasts while the force stays above `close_n`; every cloud in that time
+/// votes with the contact point of the last wrench sample at or before it
+/// ([`perception::ContactVotes`]).
+/// A push that no cloud falls in takes the part nearest its first sample's contact point in the
+/// cloud nearest in time.
+fn pushed_part(rec: &Recording, w: &Window, threshold: f64, close_n: f64) -> Option<u32> {
+    let first = rec.wrenches.iter().position(|s| w.contains(s.stamp) && s.force.norm() > threshold)?;
+    let contact = &rec.wrenches[first];
+    let end = rec.wrenches[first..].iter().find(|s| s.force.norm() <= close_n || !w.contains(s.stamp)).map_or(w.end, |s| s.stamp);
+    let mut votes = perception::ContactVotes::default();
+    for cloud in rec.clouds.iter().filter(|c| c.stamp >= contact.stamp && c.stamp <= end) {
+        // The contact point of the last wrench sample at or before the cloud (wrenches are in
+        // time order), as the node has it when the cloud arrives.
+        let k = rec.wrenches.partition_point(|s| s.stamp <= cloud.stamp);
+        if let Some(s) = k.checked_sub(1).and_then(|i| rec.wrenches.get(i)) {
+            votes.add(cloud, &s.point);
+        }
+    }
+    votes.part().or_else(|| {
+        let cloud: &CloudFrame = rec.clouds.iter().min_by(|a, b| (a.stamp - contact.stamp).abs().total_cmp(&(b.stamp - contact.stamp).abs()))?;
+        perception::nearest_part(cloud, &contact.point).map(|(l, _)| l)
+    })
 }

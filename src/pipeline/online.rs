@@ -104,9 +104,11 @@ impl Held {
     }
 }
 
-/// A rising edge of the applied force: the start of a push, and the part nearest to it in the
-/// cloud nearest in time (contract section 1: "the pushed part is the one whose points lie
-/// nearest to the contact point").
+/// A rising edge of the applied force: the start of a push, and the part it pushes (contract
+/// section 1: "the pushed part is the one whose points lie nearest to the contact point"): as in
+/// replay, every cloud while the force stays above `force_close_n` votes
+/// ([`perception::ContactVotes`]); a push no cloud falls in takes the part nearest its contact
+/// point in the cloud nearest in time.
 #[derive(Debug, Clone)]
 struct Contact {
     stamp: f64,
@@ -115,6 +117,17 @@ struct Contact {
     point: Point3<f64>,
     /// (|cloud stamp - contact stamp|, nearest label) of the best cloud so far.
     best: Option<(f64, u32)>,
+    /// The clouds' votes while the push lasts.
+    votes: perception::ContactVotes,
+    /// Whether the force has stayed above `force_close_n` since the edge.
+    pushing: bool,
+}
+
+impl Contact {
+    /// The pushed part: the clouds' vote, else the nearest part in the cloud nearest in time.
+    fn part(&self) -> Option<u32> {
+        self.votes.part().or(self.best.map(|b| b.1))
+    }
 }
 
 /// The streaming pipeline: feed it `/tf`, `/tf_static`, clouds and wrenches as they arrive.
@@ -227,7 +240,7 @@ impl Online {
             .collect();
         for (k, c) in open.iter().enumerate() {
             let end = open.get(k + 1).map_or(f64::INFINITY, |n| n.stamp);
-            out.push(Window { start: c.stamp, end, pushed_part: c.best.map(|(_, l)| l) });
+            out.push(Window { start: c.stamp, end, pushed_part: c.part() });
         }
         out
     }
@@ -341,7 +354,11 @@ impl Online {
     fn observe(&mut self, cloud: CloudFrame) -> Vec<(u32, PartObservation)> {
         self.first_cloud.get_or_insert(cloud.stamp);
         self.last_cloud_stamp = cloud.stamp;
+        let contact_now = self.wrenches.last().map(|w| w.point);
         for c in &mut self.contacts {
+            if let (true, Some(p)) = (c.pushing && cloud.stamp >= c.stamp, contact_now) {
+                c.votes.add(&cloud, &p);
+            }
             let dt = (cloud.stamp - c.stamp).abs();
             if c.best.is_none_or(|(b, _)| dt < b) {
                 if let Some((label, _)) = perception::nearest_part(&cloud, &c.point) {
@@ -365,11 +382,17 @@ impl Online {
         // window, else at the first above `force_close_n` ([`crate::windows::force_windows`]).
         for (strong, rising) in [(true, above && !self.force_above), (false, above_close && !self.force_above_close)] {
             if rising {
-                let mut c = Contact { stamp: w.stamp, strong, point: w.point, best: None };
+                let mut c = Contact { stamp: w.stamp, strong, point: w.point, best: None, votes: Default::default(), pushing: true };
                 if let Some(cloud) = &self.last_cloud {
                     c.best = perception::nearest_part(cloud, &w.point).map(|(l, _)| ((cloud.stamp - w.stamp).abs(), l));
                 }
                 self.contacts.push(c);
+            }
+        }
+        if !above_close {
+            // The push is over: later clouds no longer vote.
+            for c in &mut self.contacts {
+                c.pushing = false;
             }
         }
         self.force_above = above;
@@ -466,7 +489,7 @@ impl Online {
         for w in &mut new {
             if dynamic {
                 let first = |strong: bool| self.contacts.iter().find(|c| c.strong == strong && w.contains(c.stamp));
-                w.pushed_part = first(true).or_else(|| first(false)).and_then(|c| c.best.map(|b| b.1));
+                w.pushed_part = first(true).or_else(|| first(false)).and_then(Contact::part);
             }
         }
         let n = new.len();
