@@ -33,19 +33,23 @@ from mcap_ros2.reader import read_ros2_messages
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import corpus  # noqa: E402
+import mujoco  # noqa: E402  (after corpus, which sets up MuJoCo's environment)
 
 OPEN_N, CLOSE_N = 1.0, 0.5  # bom's windows.force_open_n and force_close_n
 
 
 def quat_mat(x, y, z, w):
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    """Rotation matrix of a ROS quaternion (MuJoCo's `mju_quat2Mat`, which takes w first)."""
+    m = np.zeros(9)
+    mujoco.mju_quat2Mat(m, np.array([w, x, y, z]))
+    return m.reshape(3, 3)
 
 
 def read(bag):
     """Clouds in the fixed frame (stamp, points, labels), wrench samples (stamp, |force|) and the
-    contact point at a stamp (the `/tf` contact frame nearest in time)."""
+    contact point at a stamp (the `/tf` contact frame nearest in time). The recorder's own formats
+    only: clouds of FLOAT32 x, y, z and UINT32 label with one static transform to the fixed frame,
+    the contact frame a child of the fixed frame."""
     static, clouds, wrenches, contact = None, [], [], []
     for m in read_ros2_messages(bag, topics=["/tf_static", "/tf", "/segmented_points", "/applied_wrench"]):
         topic, msg = m.channel.topic, m.ros_msg
