@@ -10,7 +10,7 @@ use crate::model::dynamics::{self, DynamicsConfig, JointInWindow, KinoParams, Su
 use crate::model::effects::EffectSet;
 use crate::model::likelihood::{Evidence, WindowEvidence};
 use crate::model::physics::{generalised_force, JointKind};
-use crate::model::{displacement, track_coordinate, tree, Displacement, JointParams, JointType};
+use crate::model::{displacement, observed_coordinate, tree, Displacement, JointParams, JointType};
 
 /// The MAP tree of a posterior as parent node indices (0 = fixed frame, `k + 1` = part `k`).
 fn map_parents(post: &Posterior) -> Vec<usize> {
@@ -53,7 +53,8 @@ pub struct JointSeries {
     pub params: JointParams<f64>,
     /// The parent's displacement at every grid frame.
     pub pre: Vec<Displacement<f64>>,
-    /// Observed joint coordinate at every grid frame [m of path] (NaN: not seen).
+    /// Observed joint coordinate at every grid frame [m of path] (NaN: not seen), by
+    /// [`crate::model::observed_coordinate`].
     pub q: Vec<f64>,
     pub windows: Vec<JointWindow>,
 }
@@ -72,9 +73,12 @@ impl JointSeries {
             0 => vec![Displacement::identity(); k],
             p => transforms[p - 1].clone(),
         };
+        // A hinge's coordinate from its observed turn where the shape shows it
+        // ([`observed_coordinate`]): criticism's residuals are otherwise a panel's slide in its
+        // own plane, which an effect would "explain".
         let q: Vec<f64> = (0..k)
             .map(|t| match &ev.parts[i].obs[t] {
-                Some(o) => track_coordinate(&params, &pre[t].inverse_apply(&o.y)),
+                Some(o) => observed_coordinate(&params, &pre[t], &o.y, ev.parts[i].rot[t].as_ref()),
                 None => f64::NAN,
             })
             .collect();

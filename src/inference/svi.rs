@@ -282,46 +282,35 @@ fn mean_block(ev: &Evidence, i: usize, b: &Block, theta: &[f64], model: &ModelCo
     BlockSample { eps: vec![0.0; np], xi, q_eps: vec![0.0; k], q, params, kd }
 }
 
-/// Replace the coordinates of `s` by the observed ones where part `i` is seen (the coordinate that
-/// best explains its observed centre of mass, [`crate::model::track_coordinate`], in the parent's
-/// frame `pre`), and return their observation variance per grid frame \[m²\] (0 where unseen):
-/// the perception covariance along the path's tangent plus the noise `sigma^2` (eq. 2's
-/// covariance seen along the one direction the joint moves the centre of mass). A revolute
-/// part's coordinate also takes its observed rotation
-/// ([`crate::model::revolute::rotation_coordinate`]), averaged with the centre's by inverse
-/// variances where the two agree, its variance left the centre's (why: in the body).
+/// Replace the coordinates of `s` by the observed ones where part `i` is seen
+/// ([`crate::model::observed_coordinate`] in the parent's frame `pre`: a hinge's from its observed
+/// turn where the part's shape shows it, else the coordinate that best explains the observed
+/// centre of mass), and return their observation variance per grid frame \[m²\] (0 where
+/// unseen): the perception covariance along the path's tangent plus the noise `sigma^2` (eq. 2's
+/// covariance seen along the one direction the joint moves the centre of mass), for a hinge read
+/// off its turn too (why: in the body).
 fn observed_coordinates(ev: &Evidence, i: usize, s: &mut BlockSample, pre: &[Displacement<f64>]) -> Vec<f64> {
     let p = &s.params;
     let mut r2 = vec![0.0; ev.len()];
     for (t, o) in ev.parts[i].obs.iter().enumerate() {
         let Some(o) = o else { continue };
-        let q = crate::model::track_coordinate(p, &pre[t].inverse_apply(&o.y));
+        // A revolute part's coordinate from its observed turn where the shape shows it
+        // ([`crate::model::observed_coordinate`]: the centre of mass slides in a panel's plane).
+        let q = crate::model::observed_coordinate(p, &pre[t], &o.y, ev.parts[i].rot[t].as_ref());
         // Unit tangent of the centre of mass's path at q (q is its path length), fixed frame.
         let e = 1e-4;
         let at = |q: f64| pre[t].apply(&displacement(p, q).apply(&p.com));
         let tangent = (at(q + e) - at(q - e)) / (2.0 * e);
         let along = o.basis.transpose() * tangent;
-        let r2_pos = (0..3).map(|k| along[k] * along[k] * o.var[k]).sum::<f64>() + p.noise * p.noise;
-        // A revolute part's rotation measures the same coordinate: where the two agree (the 99%
-        // point of chi-square with one degree of freedom; a registration that flipped a
-        // symmetric handle does not), their inverse-variance weighted mean. The centre's variance
-        // is kept, not the mean's smaller one: both come from one registration, whose turns
-        // persist once picked up (README "Stop 56"), so the rotation's per-frame variance
-        // overstates what it adds (credited with it, the 90% intervals of friction held the
-        // truth less often on `validation`, README "Stop 58").
-        let fused = ev.parts[i].rot[t]
-            .as_ref()
-            .and_then(|ro| crate::model::revolute::rotation_coordinate(p, &pre[t], ro, q))
-            .filter(|&(qr, r2r)| (qr - q).powi(2) <= CHI2_1DOF_99 * (r2_pos + r2r))
-            .map(|(qr, r2r)| (q * r2r + qr * r2_pos) / (r2_pos + r2r));
-        r2[t] = r2_pos;
-        s.q[t] = fused.unwrap_or(q);
+        // The centre's variance, as before the rotation took over the reading: both come from one
+        // registration, whose turns persist once picked up (README "Stop 56"), so the rotation's
+        // per-frame variance overstates what it adds (credited with it, the 90% intervals of
+        // friction held the truth less often on `validation`, README "Stop 58").
+        r2[t] = (0..3).map(|k| along[k] * along[k] * o.var[k]).sum::<f64>() + p.noise * p.noise;
+        s.q[t] = q;
     }
     r2
 }
-
-/// The 99% point of chi-square with one degree of freedom.
-const CHI2_1DOF_99: f64 = 6.635;
 
 /// Newton steps of the collapsed (reported) kinodynamic fit: with 12, the door fits of
 /// `hingecabinet` stopped up to 11 nats below their mode with gradients of 30-600 still (the

@@ -87,8 +87,9 @@ fn reach_bound(reach: f64, cfg: &ModelConfig) -> Option<f64> {
 ///
 /// Why: a revolute part's rotation measures its angle directly, while its centre of mass measures
 /// it only through the radius (a door's centre is 0.2-0.3 m from its hinge, a lid's or a latch's
-/// less); the kinematic likelihood (eq. 2) uses both, and the collapsed kinodynamic fit's observed
-/// coordinates ([`crate::inference::svi`]) take this with the centre's.
+/// less); the kinematic likelihood (eq. 2) uses both, and the observed coordinates of the collapsed
+/// kinodynamic fit ([`crate::inference::svi`]) and of model criticism take this in place of the
+/// centre's where the part's shape shows the turn ([`super::observed_coordinate`]).
 pub fn rotation_coordinate(p: &JointParams<f64>, pre: &Displacement<f64>, o: &super::likelihood::RotationObs, q0: f64) -> Option<(f64, f64)> {
     if p.joint != super::JointType::Revolute || !(p.radius > 0.0) {
         return None;
