@@ -9,7 +9,7 @@ against the recorder's joint positions, for the procedural objects of a corpus s
 replays an object's continuous bag and prints, per grid frame, each revolute part's coordinate (m
 of path, 0 at its first observation) read off the centre of mass and as bom reads it
 (`bom::model::observed_coordinate`). The truth is the recorder re-run from the object's seed with
-every hinge's `qpos` taken as each cloud is rendered (as `true_track.py` does), moved to the same
+the hinges' `qpos` taken as each cloud is rendered (`true_track.joint_tracks`), moved to the same
 origin, times the fitted radius, its sign the one that agrees with bom's axis. Scored: hinges
 that bom calls revolute and that hang on a part that does not move (a latch on a door turns with
 the door, which one joint's reading does not hold). Printed per hinge: frames, RMS error of each
@@ -17,40 +17,16 @@ reading [mm of path]; then the medians and how often bom's reading is the nearer
 library, MuJoCo and the recorder only.
 """
 import argparse
-import contextlib
 import json
 import math
-import os
 import statistics
 import subprocess
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import corpus  # noqa: E402
-import record  # noqa: E402
-import mujoco  # noqa: E402  (after record, which sets up MuJoCo's environment)
+import true_track  # noqa: E402
 from mcap.reader import make_reader  # noqa: E402
-
-
-def true_hinges(entry):
-    """{joint name: [(stamp, qpos)]} of every hinge, at each cloud of the object's continuous bag."""
-    so, _, _, interactions = corpus.draw(entry["seed_used"])
-    rec = record.Recorder(so, {}, entry["seed_used"], 150)
-    m = rec.model
-    hinges = {m.joint(j).name: m.jnt_qposadr[j] for j in range(m.njnt) if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE}
-    samples = []
-    render = rec.cloud
-
-    def cloud():
-        samples.append((float(rec.data.time), {n: float(rec.data.qpos[a]) for n, a in hinges.items()}))
-        return render()
-
-    rec.cloud = cloud
-    with contextlib.redirect_stdout(sys.stderr):
-        rec.record(os.devnull, interactions, declared=True, t0=1.0)
-    t_first = samples[0][0]
-    return {n: [(round(1.0 + t - t_first, 3), q[n]) for t, q in samples] for n in hinges}
 
 
 def ground_truth(bag):
@@ -107,10 +83,13 @@ def main(argv=None):
         keep = [l for l in rows if parts.get(l, {}).get("joint") == "revolute" and parts.get(parts[l]["parent"], {}).get("joint", "rigid") == "rigid"]
         if not keep:
             continue
-        truth = true_hinges(e)
-        for l in keep:
-            joint = parts[l]["name"] + "_hinge"
-            s = truth.get(joint) and score(rows[l], truth[joint])
+        try:
+            tracks, _ = true_track.joint_tracks(e, [parts[l]["name"] + "_hinge" for l in keep])
+        except KeyError as err:
+            print(f"{e['name']}: no joint {err}, skipped")
+            continue
+        for l, track in zip(keep, tracks):
+            s = score(rows[l], track)
             if not s:
                 continue
             n, e_com, e_read = s

@@ -42,32 +42,43 @@ def main(argv=None):
     entries = {e["name"]: e for e in json.loads((Path(args.corpus) / "manifest.json").read_text())["objects"]}
     if args.object not in entries:
         sys.exit(f"error: {args.object}: not in {args.corpus}/manifest.json")
-    e = entries[args.object]
-    so, _, _, interactions = corpus.draw(e["seed_used"])
-    rec = record.Recorder(so, {}, e["seed_used"], 150)
     try:
-        adr = rec.model.jnt_qposadr[rec.joint_id(args.joint)]
-    except Exception:
+        (track,), hinge = joint_tracks(entries[args.object], [args.joint])
+    except KeyError:
         sys.exit(f"error: {args.joint}: no such joint in {args.object}")
-    positions = []
+    if args.trace is None:
+        for t, q in track:
+            print(f"{t:.3f} {q:.6f}")
+        return
+    compare(track, registered(args.trace, args.label), hinge[0])
+
+
+def joint_tracks(entry, joints):
+    """The recorder re-run from a manifest `entry`'s seed (deterministic): for each name in
+    `joints`, its `qpos` at every cloud as `[(stamp, q)]` (stamps as in the continuous bag, the
+    first cloud at 1.0 s), and whether each is a hinge. KeyError for a joint the object lacks."""
+    so, _, _, interactions = corpus.draw(entry["seed_used"])
+    rec = record.Recorder(so, {}, entry["seed_used"], 150)
+    ids = [rec.joint_id(name) for name in joints]
+    for name, j in zip(joints, ids):
+        if j < 0:  # mj_name2id's answer for a name the model lacks
+            raise KeyError(name)
+    adrs = [rec.model.jnt_qposadr[j] for j in ids]
+    samples = []
     render = rec.cloud
 
     def cloud():
         # The simulation time of each cloud, from the first one (recorded at the bag's t0).
-        positions.append((float(rec.data.time), float(rec.data.qpos[adr])))
+        samples.append((float(rec.data.time), [float(rec.data.qpos[a]) for a in adrs]))
         return render()
 
     rec.cloud = cloud
     # The recorder's own report goes to stderr; the bag it writes is thrown away.
     with contextlib.redirect_stdout(sys.stderr):
         rec.record(os.devnull, interactions, declared=True, t0=1.0)
-    track = [(round(1.0 + t - positions[0][0], 3), q) for t, q in positions]
-    if args.trace is None:
-        for t, q in track:
-            print(f"{t:.3f} {q:.6f}")
-        return
-    hinge = rec.model.jnt_type[rec.joint_id(args.joint)] == mujoco.mjtJoint.mjJNT_HINGE
-    compare(track, registered(args.trace, args.label), hinge)
+    t_first = samples[0][0]
+    tracks = [[(round(1.0 + t - t_first, 3), q[k]) for t, q in samples] for k in range(len(ids))]
+    return tracks, [rec.model.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE for j in ids]
 
 
 def registered(path, label):
