@@ -163,6 +163,16 @@ impl JointSeries {
         (l, g)
     }
 
+    /// Per window, the derivatives of the physics prior ([`dynamics::window_prior`]) at
+    /// standardised parameters `xi` with `effects` with respect to the window's observed
+    /// coordinates, one per frame of the window (the first through the simulation's start): for a
+    /// Gaussian deviation `-(q_t - Psi_t) / sigma_d^2`, down-weighted where a Student-t one is large.
+    /// Their autocorrelation measures how much the frames repeat each other
+    /// ([`crate::inference::laplace::ar1_inflation`]).
+    pub fn deviation_scores(&self, xi: &[f64], effects: EffectSet, cfg: &DynamicsConfig) -> Vec<Vec<f64>> {
+        (0..self.windows.len()).map(|w| dynamics::window_prior(&self.joint_in_window(w, effects), &self.windows[w].win, &self.q, None, xi, cfg).2).collect()
+    }
+
     /// Predicted coordinates of window `w` from its start ([`JointSeries::start`]), at rest, with
     /// parameters `xi` (the plug-in posterior-predictive mean): one per frame of the window.
     pub fn predict(&self, w: usize, xi: &[f64], effects: EffectSet, cfg: &DynamicsConfig) -> Vec<f64> {

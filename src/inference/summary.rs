@@ -1,30 +1,15 @@
 //! Posterior summaries of a fitted guide: parent marginals and the most probable tree, joint-type
 //! probabilities, axes with their spread, kinodynamic parameters with their 90% intervals.
 
-use nalgebra::{DMatrix, Vector3};
+use nalgebra::Vector3;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 
 use super::guide::{Block, Layout};
+use super::laplace::inflated;
 use super::{AxisSummary, Estimate, JointSummary, Kinodynamics};
 use crate::model::likelihood::Evidence;
 use crate::model::{decode, dynamics, tree, JointParams, JointType, ModelConfig};
-
-/// The covariance `cov` of standardised parameters (prior `N(0, I)`) with the likelihood part of
-/// its precision divided by `c >= 1`: `((cov^-1 - I) / c + I)^-1`; `cov` itself where it is not
-/// invertible.
-fn inflated(cov: DMatrix<f64>, c: f64) -> DMatrix<f64> {
-    if c <= 1.0 {
-        return cov;
-    }
-    let d = cov.nrows();
-    let eye = DMatrix::<f64>::identity(d, d);
-    cov.clone()
-        .try_inverse()
-        .map(|p| (p - &eye) / c + &eye)
-        .and_then(|p| p.try_inverse())
-        .unwrap_or(cov)
-}
 
 /// `softmax(z)`.
 pub fn softmax(z: &[f64]) -> Vec<f64> {
@@ -37,10 +22,10 @@ pub fn softmax(z: &[f64]) -> Vec<f64> {
 /// Summaries of every joint. `type_logits` and `parent_logits` are the (averaged) discrete
 /// guide; `samples` the number of draws used for spreads; `inflation[i][type]` the variance
 /// inflation factor of the physics prior's correlated deviations, or of the windows'
-/// disagreement where that is larger (see `svi::variance_inflation`, `svi::cluster_inflation`),
+/// disagreement where that is larger (see `svi::variance_inflation`, [`super::laplace::cluster_inflation`]),
 /// by which the kinodynamic intervals are widened: the physics part
 /// of the guide's precision (its inverse covariance minus the standard-normal prior's identity)
-/// is divided by it.
+/// is divided by it ([`inflated`]).
 #[allow(clippy::too_many_arguments)]
 pub fn joints(
     ev: &Evidence,
@@ -186,20 +171,4 @@ pub fn estimate_from_draws(v: &[f64]) -> Estimate {
     let mean = v.iter().sum::<f64>() / v.len() as f64;
     let sd = (v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (v.len() as f64 - 1.0).max(1.0)).sqrt();
     Estimate { median: q(0.5), sd, q05: q(0.05), q95: q(0.95) }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// With prior precision 1 and physics precision `h`, the variance `1 / (1 + h)` becomes
-    /// `1 / (1 + h / c)`: unchanged at `c = 1`, the prior's as `c` grows.
-    #[test]
-    fn inflation_divides_the_physics_precision() {
-        let h = 99.0;
-        let cov = DMatrix::from_element(1, 1, 1.0 / (1.0 + h));
-        assert!((inflated(cov.clone(), 1.0)[(0, 0)] - 0.01).abs() < 1e-12);
-        assert!((inflated(cov.clone(), 9.0)[(0, 0)] - 1.0 / 12.0).abs() < 1e-12);
-        assert!((inflated(cov, 1e9)[(0, 0)] - 1.0).abs() < 1e-6);
-    }
 }

@@ -43,7 +43,7 @@
 
 use std::time::Instant;
 
-use nalgebra::{DMatrix, DVector, Vector3};
+use nalgebra::Vector3;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Gumbel, StandardNormal};
@@ -51,7 +51,7 @@ use serde::{Deserialize, Serialize};
 
 use super::adam::Adam;
 use super::guide::{self, Block, GuideState, Layout};
-use super::laplace;
+use super::laplace::{self, ar1_factor, ar1_inflation, cluster_inflation};
 use crate::parallel;
 use super::structure;
 use super::summary::{self, softmax};
@@ -661,71 +661,13 @@ fn comparison_weights(ev: &Evidence, layout: &Layout, theta: &[f64], parents: &[
         .collect()
 }
 
-/// `n_eff / n` of residual series taken as AR(1): `1 / ar1_mean_variance_factor` at their pooled
+/// `n_eff / n` of residual series taken as AR(1): `1 / `[`laplace::ar1_mean_variance_factor`] at their pooled
 /// lag-1 autocorrelation, corrected for its bias of about `-(1 + 3 rho) / n` on series of mean
 /// length `n` (Marriott & Pope, *Biometrika* 41, 1954; a short window's twenty frames are where
 /// it matters) and clamped to `[0, 0.99]`; 1 with fewer than 8 consecutive pairs.
 fn independent_share(series: &[Vec<f64>]) -> f64 {
     1.0 / ar1_factor(series, true)
 }
-
-/// The variance inflation factor that the windows' disagreement calls for: the least `c >= 1`
-/// for which the reported covariance `(H / c + I)^-1` (see [`summary::joints`]) gives damping and
-/// friction (standardised coordinates 0 and 1) at least the variances of the cluster-robust
-/// sandwich `P^-1 (G / (G - 1) sum_w g_w g_w^T + I) P^-1`, with `P = H + I` the negative Hessian
-/// `neg_h` of the block's log posterior at the mode (`H` the physics prior's, `I` the
-/// standard-normal prior's) and `g_w` the physics prior's score of each of the `G` windows that
-/// simulate the joint (`scores`, from [`physics_prior`]).
-///
-/// Why: where the physics misses something the bags' simulator has, the deviations are not only
-/// correlated within a window (which [`variance_inflation`] allows for) but biased the same way
-/// for a whole push, and pushes at other speeds or forces pull the parameters along the
-/// damping-friction ridge in different directions. Windows are independent given the parameters,
-/// so the spread of their scores measures the information the data really hold (the sandwich
-/// covariance of a misspecified model: Huber 1967; White 1982; with windows as clusters and the
-/// small-sample factor `G / (G - 1)`, Cameron and Miller, *J. Human Resources* 50(2), 2015; for
-/// the Bayesian use, Müller, *Econometrica* 81(5), 2013). Where the model holds, the sandwich
-/// equals the Laplace covariance on average and `c` stays near 1. 1 with fewer than two such
-/// windows or a Hessian that is not positive definite.
-fn cluster_inflation(neg_h: &DMatrix<f64>, scores: &[Vec<f64>]) -> f64 {
-    // A window that does not simulate the joint scores nothing on damping and friction.
-    let used: Vec<&Vec<f64>> = scores.iter().filter(|g| g.len() >= 2 && (g[0] != 0.0 || g[1] != 0.0)).collect();
-    let (g, d) = (used.len(), neg_h.nrows());
-    if g < 2 || d < 2 {
-        return 1.0;
-    }
-    let eye = DMatrix::<f64>::identity(d, d);
-    let Some(p_inv) = neg_h.clone().cholesky().map(|c| c.inverse()) else { return 1.0 };
-    let mut meat = eye.clone();
-    for s in &used {
-        let v = DVector::from_column_slice(s);
-        meat += &v * v.transpose() * (g as f64 / (g as f64 - 1.0));
-    }
-    let sandwich = &p_inv * meat * &p_inv;
-    let h = neg_h - &eye;
-    let reported = |c: f64| (&h / c + &eye).cholesky().map(|l| l.inverse());
-    let covers = |c: f64| reported(c).is_some_and(|v| (0..2).all(|j| v[(j, j)] >= sandwich[(j, j)]));
-    if covers(1.0) {
-        return 1.0;
-    }
-    // Bisection on log c: the reported variances grow with c (H positive semi-definite).
-    let (mut lo, mut hi) = (0.0f64, MAX_INFLATION.ln());
-    if !covers(MAX_INFLATION) {
-        return MAX_INFLATION;
-    }
-    for _ in 0..40 {
-        let mid = 0.5 * (lo + hi);
-        if covers(mid.exp()) {
-            hi = mid;
-        } else {
-            lo = mid;
-        }
-    }
-    hi.exp()
-}
-
-/// The largest variance inflation [`cluster_inflation`] reports.
-const MAX_INFLATION: f64 = 1e4;
 
 /// The variance inflation factor ([`ar1_inflation`]) of the physics prior's deviations
 /// `q_t - Psi_t`, with `rho` their lag-1 autocorrelation within windows, from `gq` (the prior's
@@ -744,48 +686,6 @@ const MAX_INFLATION: f64 = 1e4;
 fn variance_inflation(ev: &Evidence, gq: &[f64]) -> f64 {
     let series: Vec<Vec<f64>> = ev.windows.iter().map(|win| win.frames.iter().skip(1).take(win.frames.len().saturating_sub(2)).map(|&t| gq[t]).collect()).collect();
     ar1_inflation(&series)
-}
-
-/// The variance of the mean of `n` AR(1) terms with lag-1 autocorrelation `rho` over that of `n`
-/// independent ones, `(1 + rho) / (1 - rho) - 2 rho (1 - rho^n) / (n (1 - rho)^2)` (the
-/// asymptotic `(1 + rho) / (1 - rho)` overstates it for short series: it never exceeds `n`), for
-/// the pooled `rho` of several series (see [`lag1_autocorrelation`], clamped to `[0, 0.99]`) and
-/// `n` their mean length; 1 when it cannot be estimated.
-fn ar1_inflation(series: &[Vec<f64>]) -> f64 {
-    ar1_factor(series, false)
-}
-
-/// [`ar1_mean_variance_factor`] at the pooled lag-1 autocorrelation of `series` and their mean
-/// length `n`, the autocorrelation raised by `(1 + 3 rho) / n` first when `bias_corrected`, then
-/// clamped to `[0, 0.99]`; 1 when it cannot be estimated.
-fn ar1_factor(series: &[Vec<f64>], bias_corrected: bool) -> f64 {
-    let Some(rho) = lag1_autocorrelation(series) else { return 1.0 };
-    let used: Vec<usize> = series.iter().map(Vec::len).filter(|&l| l > 1).collect();
-    let n = used.iter().sum::<usize>() as f64 / used.len().max(1) as f64;
-    let rho = if bias_corrected { rho + (1.0 + 3.0 * rho) / n } else { rho };
-    ar1_mean_variance_factor(rho.clamp(0.0, 0.99), n)
-}
-
-/// `n Var(mean of n AR(1) terms) / Var(one term)` for lag-1 autocorrelation `rho` in `[0, 1)`
-/// (at least 1).
-fn ar1_mean_variance_factor(rho: f64, n: f64) -> f64 {
-    ((1.0 + rho) / (1.0 - rho) - 2.0 * rho * (1.0 - rho.powf(n)) / (n * (1.0 - rho).powi(2))).max(1.0)
-}
-
-/// Pooled lag-1 autocorrelation about zero of several series: `sum x_k x_{k+1}` over
-/// `sqrt(sum x_k^2 * sum x_{k+1}^2)`, over the consecutive pairs within each series; `None` with
-/// fewer than 8 pairs. (Biased low by about `(1 + 3 rho) / n` on series of length `n`.)
-fn lag1_autocorrelation(series: &[Vec<f64>]) -> Option<f64> {
-    let (mut num, mut a, mut b, mut n) = (0.0, 0.0, 0.0, 0usize);
-    for x in series {
-        for k in 1..x.len() {
-            num += x[k - 1] * x[k];
-            a += x[k - 1] * x[k - 1];
-            b += x[k] * x[k];
-            n += 1;
-        }
-    }
-    (n >= 8 && a > 0.0 && b > 0.0).then(|| num / (a * b).sqrt())
 }
 
 
@@ -1632,35 +1532,6 @@ mod tests {
         assert!(close(&far.joints[1].type_probs, &best.joints[1].type_probs));
     }
 
-    /// The lag-1 autocorrelation of AR(1) series of the length of a window's deviations is
-    /// recovered to its small-sample bias; the inflation factor follows it.
-    #[test]
-    fn ar1_inflation_recovers_the_autocorrelation() {
-        use rand::SeedableRng;
-        use rand_distr::{Distribution, StandardNormal};
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
-        for rho in [0.0, 0.5, 0.9] {
-            let series: Vec<Vec<f64>> = (0..40)
-                .map(|_| {
-                    let mut x: f64 = StandardNormal.sample(&mut rng);
-                    (0..50)
-                        .map(|_| {
-                            let e: f64 = StandardNormal.sample(&mut rng);
-                            x = rho * x + (1.0 - rho * rho).sqrt() * e;
-                            x
-                        })
-                        .collect()
-                })
-                .collect();
-            let r = lag1_autocorrelation(&series).expect("enough pairs");
-            let bias = (1.0 + 3.0 * rho) / 50.0;
-            assert!((r - rho).abs() < bias + 0.03, "rho {rho}: estimated {r:.3}");
-            let c = ar1_inflation(&series);
-            assert!(c >= 1.0 && (rho == 0.0 || c > 0.8 * (1.0 + rho - bias) / (1.0 - rho + bias)), "rho {rho}: inflation {c:.2}");
-        }
-        assert_eq!(ar1_inflation(&[vec![1.0, 2.0, 3.0]]), 1.0, "too few values");
-    }
-
     /// `n_eff / n` of short AR(1) windows (three axes of 20 frames, each less its mean, as the
     /// residuals of a fit to one short window are: the fitted centre of mass takes out their
     /// offset): near the true `1 / ar1_mean_variance_factor(rho, 20)` once the lag-1 estimate's
@@ -1692,56 +1563,10 @@ mod tests {
             }
             shares.sort_by(|a, b| a.total_cmp(b));
             let median = shares[shares.len() / 2];
-            let truth = 1.0 / ar1_mean_variance_factor(rho, 20.0);
+            let truth = 1.0 / laplace::ar1_mean_variance_factor(rho, 20.0);
             assert!(median > truth / 1.6 && median < truth * 1.6, "rho {rho}: median share {median:.3}, true {truth:.3}");
         }
         assert_eq!(independent_share(&[vec![1.0, 2.0, 3.0]]), 1.0, "too few pairs");
-    }
-
-    /// The window-robust inflation against its closed form: physics precision `H = 4 I` on two
-    /// parameters (`neg_h = 5 I`), windows' scores `+-2` along each, so the sandwich variance is
-    /// `(4/3 * 8 + 1) / 25 = 7/15` and `1 / (4 / c + 1)` reaches it at `c = 7/2`. Scores that
-    /// agree with `H` call for none, and one window cannot tell.
-    #[test]
-    fn cluster_inflation_matches_the_sandwich() {
-        let neg_h = DMatrix::<f64>::identity(2, 2) * 5.0;
-        let spread = [vec![2.0, 0.0], vec![-2.0, 0.0], vec![0.0, 2.0], vec![0.0, -2.0]];
-        let c = cluster_inflation(&neg_h, &spread);
-        assert!((c - 3.5).abs() < 1e-6, "inflation {c}");
-        // sum g g^T * 4/3 = 8/3 I < H: the windows agree better than the model expects.
-        let agree = [vec![1.0, 0.0], vec![-1.0, 0.0], vec![0.0, 1.0], vec![0.0, -1.0]];
-        assert_eq!(cluster_inflation(&neg_h, &agree), 1.0);
-        // Windows that do not simulate the joint (no score on damping or friction) do not count.
-        let neg_h3 = DMatrix::<f64>::identity(3, 3) * 5.0;
-        assert_eq!(cluster_inflation(&neg_h3, &[vec![2.0, 0.0, 0.0], vec![0.0, 0.0, 1.0]]), 1.0);
-    }
-
-    /// The finite-length factor is the variance of the mean of AR(1) series (Monte Carlo), and
-    /// never exceeds the series' length (a fully correlated window is one observation).
-    #[test]
-    fn ar1_factor_is_the_variance_of_the_mean() {
-        use rand::SeedableRng;
-        use rand_distr::{Distribution, StandardNormal};
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
-        for (rho, n) in [(0.5, 20usize), (0.9, 20), (0.99, 20)] {
-            let reps = 20000;
-            let means: Vec<f64> = (0..reps)
-                .map(|_| {
-                    let mut x: f64 = StandardNormal.sample(&mut rng);
-                    let mut sum = x;
-                    for _ in 1..n {
-                        let e: f64 = StandardNormal.sample(&mut rng);
-                        x = rho * x + (1.0 - rho * rho).sqrt() * e;
-                        sum += x;
-                    }
-                    sum / n as f64
-                })
-                .collect();
-            let mc = n as f64 * means.iter().map(|m| m * m).sum::<f64>() / reps as f64;
-            let f = ar1_mean_variance_factor(rho, n as f64);
-            assert!((f - mc).abs() < 0.05 * mc, "rho {rho}: formula {f:.2}, Monte Carlo {mc:.2}");
-            assert!(f <= n as f64 + 1e-9);
-        }
     }
 
     /// The dual-number gradient of a block's log-likelihood matches central finite differences.
