@@ -36,7 +36,7 @@ use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
 
-use crate::inference::laplace::{ar1_inflation, coarse_grid, inflated, mode, LaplaceFit};
+use crate::inference::laplace::{coarse_grid, deviation_inflation, inflated, mode, LaplaceFit};
 use crate::inference::Posterior;
 use crate::model::dynamics::{self, DynamicsConfig};
 use crate::model::effects::{EffectKind, EffectSet, LimitSpec};
@@ -439,10 +439,9 @@ fn effect_params(series: &JointSeries, c: &Candidate, kind: EffectKind, cfg: &Dy
     (median, intervals)
 }
 
-/// The variance inflation of a candidate's effect parameters: the AR(1) factor
-/// ([`ar1_inflation`]) of the physics prior's deviations within windows (its derivatives with
-/// respect to the observed coordinates at the mode, [`JointSeries::deviation_scores`], each
-/// window's first and last frames left out as BOM-SVI does); 1 where too few frames tell.
+/// The variance inflation of a candidate's effect parameters: the AR(1) factor of the physics
+/// prior's deviations within windows ([`deviation_inflation`] of their scores at the mode,
+/// [`JointSeries::deviation_scores`]), as for BOM-SVI's kinodynamics; 1 where too few frames tell.
 ///
 /// Why: the refit counts every frame of a window as new evidence about a spring's stiffness or a
 /// stop's position, but perception's errors are correlated over about half a second, and where
@@ -454,12 +453,7 @@ fn effect_params(series: &JointSeries, c: &Candidate, kind: EffectKind, cfg: &Dy
 /// was measured there too and covered no more: with two or three windows, a stop is hit in
 /// one, and the windows' disagreement on damping spreads the stop's interval to the prior's.
 fn effect_inflation(series: &JointSeries, c: &Candidate, cfg: &DynamicsConfig) -> f64 {
-    let deviations: Vec<Vec<f64>> = series
-        .deviation_scores(&c.fit.mean, c.effects, cfg)
-        .into_iter()
-        .map(|gq| gq.iter().skip(1).take(gq.len().saturating_sub(2)).copied().collect())
-        .collect();
-    ar1_inflation(&deviations)
+    deviation_inflation(&series.deviation_scores(&c.fit.mean, c.effects, cfg))
 }
 
 /// Values by parameter name, in the effect's order.

@@ -168,7 +168,7 @@ impl JointSeries {
     /// coordinates, one per frame of the window (the first through the simulation's start): for a
     /// Gaussian deviation `-(q_t - Psi_t) / sigma_d^2`, down-weighted where a Student-t one is large.
     /// Their autocorrelation measures how much the frames repeat each other
-    /// ([`crate::inference::laplace::ar1_inflation`]).
+    /// ([`crate::inference::laplace::deviation_inflation`]).
     pub fn deviation_scores(&self, xi: &[f64], effects: EffectSet, cfg: &DynamicsConfig) -> Vec<Vec<f64>> {
         (0..self.windows.len()).map(|w| dynamics::window_prior(&self.joint_in_window(w, effects), &self.windows[w].win, &self.q, None, xi, cfg).2).collect()
     }

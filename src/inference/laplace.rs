@@ -227,6 +227,15 @@ pub fn ar1_inflation(series: &[Vec<f64>]) -> f64 {
     ar1_factor(series, false)
 }
 
+/// [`ar1_inflation`] of the physics prior's deviation scores in several windows (`d/d q_t` of
+/// each window's prior at its frames, in order), each window's first and last frame left out: the
+/// first is the simulation's start, and the rest between windows also acts on the last. BOM-SVI's
+/// reported kinodynamics and model criticism's effects are widened by it.
+pub fn deviation_inflation(windows: &[Vec<f64>]) -> f64 {
+    let interiors: Vec<Vec<f64>> = windows.iter().map(|w| w.iter().skip(1).take(w.len().saturating_sub(2)).copied().collect()).collect();
+    ar1_inflation(&interiors)
+}
+
 /// [`ar1_mean_variance_factor`] at the pooled lag-1 autocorrelation of `series` and their mean
 /// length `n`, the autocorrelation raised by `(1 + 3 rho) / n` first when `bias_corrected`, then
 /// clamped to `[0, 0.99]`; 1 when it cannot be estimated.

@@ -682,10 +682,10 @@ fn independent_share(series: &[Vec<f64>]) -> f64 {
 /// Methods in the Atmospheric Sciences*, 3rd ed., 2011, ch. 5), so the reported intervals
 /// ([`summary::joints`]) divide the physics part of the Laplace precision by it; the mode and the
 /// guide are unchanged. `rho` in `[0, 0.99]`; 1 when there are too few
-/// frames to tell. Window ends are left out: the rest between windows also acts on them.
+/// frames to tell. Window ends are left out ([`laplace::deviation_inflation`]).
 fn variance_inflation(ev: &Evidence, gq: &[f64]) -> f64 {
-    let series: Vec<Vec<f64>> = ev.windows.iter().map(|win| win.frames.iter().skip(1).take(win.frames.len().saturating_sub(2)).map(|&t| gq[t]).collect()).collect();
-    ar1_inflation(&series)
+    let windows: Vec<Vec<f64>> = ev.windows.iter().map(|win| win.frames.iter().map(|&t| gq[t]).collect()).collect();
+    laplace::deviation_inflation(&windows)
 }
 
 
