@@ -455,7 +455,7 @@ fn effect_params(series: &JointSeries, c: &Candidate, kind: EffectKind, cfg: &Dy
 /// intervals held the truth for 8 of 19 named stops, with this 12 (README, "Stop 74"). The
 /// median, the ELBO and adoption do not see it.
 fn reach_stops(series: &JointSeries, intervals: &mut Named<[f64; 2]>) {
-    let scale = if series.params.joint == JointType::Revolute { series.params.radius } else { 1.0 };
+    let scale = path_per_unit(series);
     if scale.is_nan() || scale <= 0.0 {
         return;
     }
@@ -492,6 +492,16 @@ fn effect_inflation(series: &JointSeries, c: &Candidate, cfg: &DynamicsConfig) -
     deviation_inflation(&series.deviation_scores(&c.fit.mean, c.effects, cfg))
 }
 
+/// Metres of path per unit of the joint's own coordinate (URDF): the radius for a revolute joint
+/// (radians), 1 for a prismatic one (metres). Criticism's series are in metres of path.
+fn path_per_unit(series: &JointSeries) -> f64 {
+    if series.params.joint == JointType::Revolute {
+        series.params.radius
+    } else {
+        1.0
+    }
+}
+
 /// The standard normal's 95% quantile: a 90% interval's half-width in sds.
 const Z90: f64 = 1.644_853_626_951_472_2;
 
@@ -501,9 +511,8 @@ type Named<T> = Vec<(String, T)>;
 /// The parameters of effect `kind` decoded from standardised `x`, by name.
 fn named_params(series: &JointSeries, x: &[f64], effects: &EffectSet, kind: EffectKind, cfg: &DynamicsConfig) -> Named<f64> {
     let kp = dynamics::decode::<f64>(series.params.joint, x, effects, cfg);
-    let revolute = series.params.joint == JointType::Revolute;
     // Positions in the joint's own coordinate (URDF): radians for a revolute joint.
-    let pos = |m: f64| if revolute { m / series.params.radius } else { m };
+    let pos = |m: f64| m / path_per_unit(series);
     match kind {
         EffectKind::Spring => vec![("stiffness".into(), kp.stiffness), ("rest_position".into(), pos(kp.rest))],
         EffectKind::JointLimit => kp
