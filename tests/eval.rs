@@ -141,13 +141,17 @@ fn a_corpus_is_scored_and_bad_objects_are_skipped() {
 
 /// `bom eval --corpus` on the shipped effects corpus (`bags/effects/`: two doors whose range was
 /// narrowed so that their pushes reach a stop, absent from the ground truth — `obj093` of the
-/// effects corpus's `tune` split, and `obj013` of a further `--tune-only` corpus, seed 300000):
+/// effects corpus's `tune` split, and `obj013` of a further `--tune-only` corpus, seed 300000 —
+/// and that corpus's `obj089`, a lid on a spring that a push also drives into a stop):
 /// criticism names each joint limit with the held-out error cut to a third, its stops within
 /// 0.05 rad of the truth, and the truth inside the reported 90% intervals. The intervals allow for
 /// the physics' deviations repeating from frame to frame (`criticism::effect_inflation`; the plain
 /// Laplace intervals missed `obj093`'s closing stop, README "Stop 73") and reach the farthest
 /// coordinate the door was seen at toward each stop (`criticism::reach_stops`; without it
 /// `obj013`'s fitted stops lie 0.02 rad beyond where the door went and both miss, "Stop 74").
+/// The lid's spring is named beside its stop, each cutting the held-out error of the other alone
+/// to half: the two are fitted together (criticism's pairs; one at a time, the stop alone was
+/// adopted and the spring never, "Stop 75").
 #[test]
 fn the_shipped_undeclared_stops_are_named_inside_their_intervals() {
     let dir = tempfile::tempdir().unwrap();
@@ -155,7 +159,7 @@ fn the_shipped_undeclared_stops_are_named_inside_their_intervals() {
     let (code, _, stderr) = bom(&["eval", "--corpus", "bags/effects/manifest.json", "--json", json.to_str().unwrap(), "--jobs", "2"]);
     assert_eq!(code, 0, "{stderr}");
     let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
-    assert_eq!(r["scored"], 2, "{r}");
+    assert_eq!(r["scored"], 3, "{r}");
     for o in r["objects"].as_array().unwrap() {
         let c = &o["criticism"];
         let stop = c["effects"].as_array().unwrap().iter().find(|e| e["kind"] == "joint_limit").expect("the stop is scored");
@@ -165,7 +169,14 @@ fn the_shipped_undeclared_stops_are_named_inside_their_intervals() {
         assert_eq!(stop["param_ok"], true, "{}: {c}", o["name"]);
         assert_eq!(stop["in_interval"], true, "{}: {c}", o["name"]);
         assert_eq!(c["false_alarms"], 0, "{}: {c}", o["name"]);
+        if let Some(spring) = c["effects"].as_array().unwrap().iter().find(|e| e["kind"] == "spring") {
+            assert_eq!(spring["named"], true, "{}: {c}", o["name"]);
+            let (before, after) = (spring["rmse_before_m"].as_f64().unwrap(), spring["rmse_after_m"].as_f64().unwrap());
+            assert!(after <= before / 2.0, "{}: held-out RMSE {before:.4} -> {after:.4} m: {c}", o["name"]);
+        }
     }
+    let springs = r["objects"].as_array().unwrap().iter().filter(|o| o["criticism"]["effects"].as_array().unwrap().iter().any(|e| e["kind"] == "spring"));
+    assert_eq!(springs.count(), 1, "the lid's spring is scored");
 }
 
 /// `bom eval --corpus --inference nuts --baselines`: every object is scored on BOM-NUTS and on

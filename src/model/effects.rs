@@ -73,6 +73,25 @@ impl EffectSet {
         2 * self.spring as usize + self.limit.map_or(0, |l| l.sides() + 1) + self.quadratic_damping as usize
     }
 
+    /// Each present effect's kind with the number of standardised parameters it adds, in the
+    /// layout of [`crate::model::dynamics::decode`] after the base four (spring: stiffness, rest;
+    /// joint limit: each stop's position, then the contact stiffness; gravity: none; quadratic
+    /// damping: its coefficient). The lengths sum to [`EffectSet::num_params`].
+    pub fn param_blocks(&self) -> Vec<(EffectKind, usize)> {
+        self.kinds()
+            .into_iter()
+            .map(|k| {
+                let len = match k {
+                    EffectKind::Spring => 2,
+                    EffectKind::JointLimit => self.limit.map_or(0, |l| l.sides() + 1),
+                    EffectKind::Gravity => 0,
+                    EffectKind::QuadraticDamping => 1,
+                };
+                (k, len)
+            })
+            .collect()
+    }
+
     /// Whether any effect is present.
     pub fn any(&self) -> bool {
         *self != EffectSet::default()
