@@ -100,12 +100,12 @@ pub struct Finding {
     /// under the Laplace guide), in `params`' order; empty when unexplained.
     pub intervals: Vec<(String, [f64; 2])>,
     /// Held-out centre-of-mass RMSE before and after adding the effect \[m\] (equal when
-    /// unexplained; for one of two effects adopted together, before is the model with the other
-    /// alone).
+    /// unexplained; for one of two effects adopted together, before is the single candidate of
+    /// the other kind with the least held-out error).
     pub rmse_before_m: f64,
     pub rmse_after_m: f64,
-    /// ELBO gain of the effect over the model without it \[nats\] (the best single candidate's
-    /// when unexplained).
+    /// ELBO gain of the effect over the model without it \[nats\] (over that same candidate for
+    /// one of two effects adopted together; the best single candidate's when unexplained).
     pub evidence_nats: f64,
     /// Whether this criticism adopted the effect (false: adopted earlier, measured again).
     pub new: bool,
