@@ -104,11 +104,13 @@ fn parallel_perception_equals_frame_by_frame() {
     let b = read_bag(&bag("bags/mujoco/slide_microwave.mcap"), &mut diag).unwrap();
     let rec = bom::input::decode_recording(&[b], &cfg.topics, &cfg.fixed_frame, &mut diag);
     let mut all = bom::perception::Perception::new(cfg.perception.clone());
-    let parallel = all.observe_all(&rec.clouds);
+    let gate = bom::pipeline::push_gate(&cfg);
+    let pushes: Vec<_> = rec.clouds.iter().map(|c| gate.push(&rec.wrenches, c.stamp)).collect();
+    let parallel = all.observe_all(&rec.clouds, &pushes);
     let mut one = bom::perception::Perception::new(cfg.perception.clone());
     let mut serial = bom::perception::PartTracks::new();
     for c in &rec.clouds {
-        for (label, obs) in one.observe(c) {
+        for (label, obs) in one.observe(c, gate.push(&rec.wrenches, c.stamp).as_ref()) {
             serial.entry(label).or_default().push(obs);
         }
     }

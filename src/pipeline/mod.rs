@@ -158,7 +158,9 @@ fn observe_with(bags: &[PathBuf], cfg: &Config, diag: &mut Diagnostics, timing: 
     pb.set_message("perception");
     let t = Instant::now();
     let mut perception = Perception::new(cfg.perception.clone());
-    let tracks = perception.observe_all(&recording.clouds);
+    let gate = push_gate(cfg);
+    let pushes: Vec<_> = recording.clouds.iter().map(|c| gate.push(&recording.wrenches, c.stamp)).collect();
+    let tracks = perception.observe_all(&recording.clouds, &pushes);
     let geometry = perception.geometry();
     timing.perception = t.elapsed();
 
@@ -168,6 +170,13 @@ fn observe_with(bags: &[PathBuf], cfg: &Config, diag: &mut Diagnostics, timing: 
     let windows = find_windows(&recording, &tracks, cfg, diag);
     timing.windows = t.elapsed();
     Ok(Observed { recording, tracks, geometry, windows, ground_truth, mode })
+}
+
+/// When perception takes a cloud as pushed ([`perception::PushGate`]): a force above the windows'
+/// `force_close_n` (a push, as windows see one) in a wrench sample no older than the windows'
+/// `hold_s` (the time a push may pause below that force and still be one push).
+pub fn push_gate(cfg: &Config) -> perception::PushGate {
+    perception::PushGate { force_n: cfg.windows.force_close_n, max_age_s: cfg.windows.hold_s }
 }
 
 /// Run the pipeline on bags (several bags = several interactions with one object).

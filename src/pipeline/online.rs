@@ -366,7 +366,8 @@ impl Online {
                 }
             }
         }
-        let obs = self.perception.observe(&cloud);
+        let push = super::push_gate(&self.cfg).push(&self.wrenches, cloud.stamp);
+        let obs = self.perception.observe(&cloud, push.as_ref());
         for (label, o) in &obs {
             self.tracks.entry(*label).or_default().push(o.clone());
         }
