@@ -238,7 +238,7 @@ impl Perception {
         let cfg = &self.config;
         let mut out = Vec::new();
         let mut parts = split_parts(cloud, cfg);
-        mark_pushed(&mut parts, cloud, push);
+        mark_pushed(&mut parts, cloud, push, cfg);
         for part in parts {
             let label = part.label;
             let state = self.parts.remove(&label);
@@ -257,7 +257,7 @@ impl Perception {
         let cfg = &self.config;
         let split: Vec<Vec<SplitPart>> = parallel::map(parallel::resolve_threads(0), clouds.len(), |j| {
             let mut parts = split_parts(&clouds[j], cfg);
-            mark_pushed(&mut parts, &clouds[j], pushes.get(j).and_then(|c| c.as_ref()));
+            mark_pushed(&mut parts, &clouds[j], pushes.get(j).and_then(|c| c.as_ref()), cfg);
             parts
         });
         // Every part's frames in time order.
@@ -564,9 +564,11 @@ pub fn part_geometry(points: &[Vector3<f64>], cfg: &PerceptionConfig) -> PartGeo
     PartGeometry { com, unit_inertia, volume, rotation_axes, radius, points: points.to_vec() }
 }
 
-/// Give the push (if one acts) to the part of `cloud` nearest its contact point.
-fn mark_pushed(parts: &mut [SplitPart], cloud: &CloudFrame, push: Option<&Push>) {
-    let Some(push) = push else { return };
+/// Give the push (if one acts) to the part of `cloud` nearest its contact point; nothing while
+/// the push prior is off (`push_move_penalty_nats` not below `move_penalty_nats`), so that the
+/// default costs no search.
+fn mark_pushed(parts: &mut [SplitPart], cloud: &CloudFrame, push: Option<&Push>, cfg: &PerceptionConfig) {
+    let Some(push) = push.filter(|_| cfg.push_move_penalty_nats < cfg.move_penalty_nats) else { return };
     let Some((label, _)) = nearest_part(cloud, &push.point) else { return };
     for part in parts.iter_mut().filter(|p| p.label == label) {
         part.push = Some(*push);
@@ -721,15 +723,17 @@ mod tests {
             labels: vec![1, 1, 2, 2],
             viewpoint: None,
         };
-        let cfg = PerceptionConfig { min_points: 1, ..PerceptionConfig::default() };
+        let cfg = PerceptionConfig { min_points: 1, push_move_penalty_nats: 4.0, ..PerceptionConfig::default() };
         let mut parts = split_parts(&cloud, &cfg);
         let push = Push { point: Point3::new(0.48, 0.0, 0.0), force: Vector3::new(-1.0, 0.0, 0.0) };
-        mark_pushed(&mut parts, &cloud, Some(&push));
+        mark_pushed(&mut parts, &cloud, Some(&push), &cfg);
         let pushed: Vec<(u32, bool)> = parts.iter().map(|p| (p.label, p.push.is_some())).collect();
         assert_eq!(pushed, [(1, false), (2, true)]);
-        let mut parts = split_parts(&cloud, &cfg);
-        mark_pushed(&mut parts, &cloud, None);
-        assert!(parts.iter().all(|p| p.push.is_none()));
+        for (push, cfg) in [(None, cfg.clone()), (Some(&push), PerceptionConfig { min_points: 1, ..PerceptionConfig::default() })] {
+            let mut parts = split_parts(&cloud, &cfg);
+            mark_pushed(&mut parts, &cloud, push, &cfg);
+            assert!(parts.iter().all(|p| p.push.is_none()), "no push, or the prior off (the default)");
+        }
     }
 
     /// A flap (label 3) pushed while the hand hides it in the push's first cloud, where the drawer
