@@ -71,6 +71,10 @@ impl Config {
         if !(cfg.inference.report_rate.is_finite() && cfg.inference.report_rate > 0.0) {
             return Err(format!("{source}: inference.report_rate must be a positive number, got {}", cfg.inference.report_rate));
         }
+        // A negative or NaN discrepancy would make every reported axis spread NaN.
+        if !(cfg.model.axis_discrepancy_deg.is_finite() && cfg.model.axis_discrepancy_deg >= 0.0) {
+            return Err(format!("{source}: model.axis_discrepancy_deg must be a number >= 0, got {}", cfg.model.axis_discrepancy_deg));
+        }
         Ok(cfg)
     }
 }

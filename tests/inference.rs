@@ -212,9 +212,13 @@ fn nuts_extends_chains_until_the_diagnostics_hold() {
     let (w, n) = (post.joints[door].axis.as_ref().expect("an axis"), narrow.joints[door].axis.as_ref().expect("an axis"));
     assert_eq!((w.inflation, n.inflation), (inflation, 1.0));
     assert!((w.direction - n.direction).norm() < 1e-12, "{:?} vs {:?}", w.direction, n.direction);
-    let ratio = w.direction_sd_deg / n.direction_sd_deg;
+    // (The posterior's own spreads: the model discrepancy is added to both after the widening.)
+    let ratio = w.posterior_sd_deg / n.posterior_sd_deg;
     assert!((ratio / inflation.sqrt() - 1.0).abs() < 1e-9, "spread ratio {ratio} for a variance inflation of {inflation}");
-    assert!((w.direction_q90_deg / n.direction_q90_deg / inflation.sqrt() - 1.0).abs() < 1e-9 && (w.point_sd_m / n.point_sd_m / inflation.sqrt() - 1.0).abs() < 1e-9, "{w:?} vs {n:?}");
+    assert!((w.posterior_q90_deg / n.posterior_q90_deg / inflation.sqrt() - 1.0).abs() < 1e-9 && (w.point_sd_m / n.point_sd_m / inflation.sqrt() - 1.0).abs() < 1e-9, "{w:?} vs {n:?}");
+    let d = cfg.model.axis_discrepancy_deg;
+    assert!(d > 0.0 && (w.discrepancy_deg, n.discrepancy_deg) == (d, d), "{w:?} vs {n:?}");
+    assert!((w.direction_sd_deg - w.posterior_sd_deg.hypot(std::f64::consts::SQRT_2 * d)).abs() < 1e-9, "{w:?}");
 }
 
 /// `--inference` takes svi or nuts; anything else is a bad argument (exit 2, one line).

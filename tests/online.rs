@@ -70,7 +70,7 @@ fn agree(rel: &str, closes_live: bool, rigid_parents: bool) {
         // cabinet that never moves): any direction fits, so there is nothing to agree on.
         if let (Some(x), Some(y), true) = (&j.axis, &r.axis, r.map_type.movable()) {
             let angle = x.direction.dot(&y.direction).abs().min(1.0).acos().to_degrees();
-            let spread = 3.0 * x.direction_sd_deg.max(y.direction_sd_deg).max(0.5);
+            let spread = 3.0 * x.posterior_sd_deg.max(y.posterior_sd_deg).max(0.5);
             assert!(angle <= spread, "{rel}: part {} axis {angle:.2} deg apart (spread {spread:.2})", j.child);
         }
     }

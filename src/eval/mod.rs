@@ -56,6 +56,9 @@ pub struct PartMetrics {
     pub damping_interval: Option<[f64; 2]>,
     pub friction_interval: Option<[f64; 2]>,
     pub axis_cone_deg: Option<f64>,
+    /// The posterior's own 90% cone, before the model discrepancy (`model.axis_discrepancy_deg`):
+    /// what SVI's and NUTS's axes are compared by ([`corpus::svi_vs_nuts`]).
+    pub axis_cone_posterior_deg: Option<f64>,
 }
 
 /// Calibration over all movable parts: how often the truth lies in the 90% posterior interval.
@@ -222,6 +225,7 @@ fn part_metrics(gt: &GroundTruth, part: &GtPart, post: &Posterior, statics: &[u3
         damping_interval,
         friction_interval,
         axis_cone_deg,
+        axis_cone_posterior_deg: axis.map(|a| a.posterior_q90_deg),
     }
 }
 

@@ -39,6 +39,36 @@ pub struct AxisSummary {
     /// `position_inflation`); 1: none. BOM-NUTS widens its draws by the same factor, so that SVI
     /// and NUTS differ only by the guide ([`nuts`] module docs).
     pub inflation: f64,
+    /// The model discrepancy in `direction_sd_deg` and `direction_q90_deg` \[deg\]: the sd per
+    /// direction across the axis of the tilt added to the posterior's
+    /// ([`ModelConfig::axis_discrepancy_deg`](crate::model::ModelConfig::axis_discrepancy_deg);
+    /// 0: none, the spreads are the posterior's alone).
+    pub discrepancy_deg: f64,
+    /// The posterior's own RMS angle and 90% cone, before the discrepancy \[deg\]: what SVI
+    /// and NUTS are compared by (the discrepancy is the same for both).
+    pub posterior_sd_deg: f64,
+    pub posterior_q90_deg: f64,
+}
+
+/// `sqrt(-2 ln 0.1)`: the 90% quantile of the length of a 2-D standard normal vector (Rayleigh).
+pub(crate) const RAYLEIGH_Q90: f64 = 2.145_966_026_289_347;
+
+impl AxisSummary {
+    /// The spreads with a model discrepancy: an isotropic tilt across the axis of sd `sd_deg`
+    /// per direction, independent of the posterior's, added in quadrature — the RMS angle
+    /// `sqrt(s^2 + 2 sd^2)`, the 90% cone `sqrt(q90^2 + (2.146 sd)^2)` (exact for an isotropic
+    /// Gaussian posterior, whose angle is Rayleigh). The direction, point and the posterior's own
+    /// spreads (`posterior_sd_deg`, `posterior_q90_deg`) stay. Applied once: the spreads it
+    /// widens are always the posterior's.
+    pub fn with_discrepancy(self, sd_deg: f64) -> AxisSummary {
+        let sd = if sd_deg.is_finite() { sd_deg.max(0.0) } else { 0.0 };
+        AxisSummary {
+            direction_sd_deg: self.posterior_sd_deg.hypot(std::f64::consts::SQRT_2 * sd),
+            direction_q90_deg: self.posterior_q90_deg.hypot(RAYLEIGH_Q90 * sd).min(180.0),
+            discrepancy_deg: sd,
+            ..self
+        }
+    }
 }
 
 /// Posterior summary of one positive scalar parameter (its SI unit).

@@ -106,6 +106,16 @@ pub struct ModelConfig {
     pub rotation_noise_log_sd: f64,
     /// Prior sd of a revolute axis point around the part's reference centre of mass \[m\].
     pub axis_point_sd_m: f64,
+    /// Model discrepancy of a reported axis direction \[deg\]: the sd, per direction across the
+    /// axis, of an isotropic tilt added to the posterior's spread (0: none). Perception is not the
+    /// world — a panel's registered track bends by millimetres, its errors come in bursts — so a
+    /// direction fitted to more frames does not converge on the true one; the discrepancy is
+    /// what more data cannot remove (Kennedy & O'Hagan, JRSS B 63(3), 2001; as
+    /// `dynamics.discrepancy_log_sd` for the kinodynamics). It widens `direction_sd_deg` and the
+    /// 90% cone in quadrature ([`crate::inference::AxisSummary::with_discrepancy`]) and moves no
+    /// estimate or joint type. 1.6, chosen on the corpus's `tune` objects (README
+    /// "Generalization", stop 77).
+    pub axis_discrepancy_deg: f64,
     /// Median and log-sd of the log-normal prior on the velocity scale of the random-walk prior
     /// on joint coordinates (kinematic mode) [m/s of centre-of-mass path].
     pub velocity_sd_mps: f64,
@@ -145,6 +155,7 @@ impl Default for ModelConfig {
             rotation_noise_median_rad: 0.02,
             rotation_noise_log_sd: 1.0,
             axis_point_sd_m: 0.2,
+            axis_discrepancy_deg: 1.6,
             velocity_sd_mps: 0.5,
             velocity_log_sd: 1.5,
             window_start_sd_m: 1.0,

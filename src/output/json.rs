@@ -36,6 +36,13 @@ pub struct AxisJson {
     /// (`n / n_eff` of the part's residuals in kinematic mode; beyond the contract's example;
     /// [`crate::inference::AxisSummary::inflation`]).
     pub variance_inflation: f64,
+    /// The model discrepancy in `direction_sd_deg` and `direction_q90_deg` (sd of a tilt per
+    /// direction across the axis, deg; `model.axis_discrepancy_deg`), and the posterior's own
+    /// spreads before it (beyond the contract's example;
+    /// [`crate::inference::AxisSummary::with_discrepancy`]).
+    pub direction_discrepancy_deg: f64,
+    pub direction_posterior_sd_deg: f64,
+    pub direction_posterior_q90_deg: f64,
 }
 
 /// A kinodynamic parameter: median, sd and (beyond the contract's example) the 90% interval.
@@ -219,6 +226,9 @@ pub fn model_json(p: &Posterior) -> ModelJson {
                 point: a.point.map(|p| [p.x, p.y, p.z]),
                 point_sd_m: finite(a.point_sd_m),
                 variance_inflation: a.inflation,
+                direction_discrepancy_deg: a.discrepancy_deg,
+                direction_posterior_sd_deg: a.posterior_sd_deg,
+                direction_posterior_q90_deg: a.posterior_q90_deg,
             }),
             com: {
                 let ty = j.axis.as_ref().filter(|_| j.map_type.movable()).map_or(j.map_type, |a| a.joint);

@@ -45,6 +45,12 @@ pub struct PerceptionConfig {
     pub min_points: usize,
     /// At most this many points per part and frame are registered (an even subsample).
     pub max_points: usize,
+    /// A frame that shows fewer points of a part than this fraction of the most seen of it in
+    /// one frame (before the subsample) is not registered: the part is treated as not seen (a
+    /// sliver constrains the pose in too few directions, and grows the model at a wrong pose).
+    /// 0 (the default): off; measured on the corpus and not landed — a panel sliding behind
+    /// another shows less of itself exactly while it moves (README "Generalization", stop 77).
+    pub min_seen_fraction: f64,
     /// Minimum smallest principal standard deviation for a model's convex hull \[m\].
     pub min_thickness_m: f64,
     /// Isolated model points — those whose mean distance to this many nearest model points is
@@ -127,6 +133,7 @@ impl Default for PerceptionConfig {
         PerceptionConfig {
             min_points: 8,
             max_points: 400,
+            min_seen_fraction: 0.0,
             min_thickness_m: 0.005,
             hull_outlier_neighbours: 0,
             com_sd_floor_m: 0.003,
@@ -209,6 +216,8 @@ struct PartState {
     anchor: Vector3<f64>,
     /// The registered frames' points and weights, by stamp, for [`Perception::refine`].
     frames: Vec<(f64, Vec<Vector3<f64>>, Vec<f64>)>,
+    /// The most points (before the subsample) seen of the part in one frame.
+    most_seen: usize,
 }
 
 /// Stateful perception: one tracker per part label.
@@ -321,8 +330,8 @@ impl Perception {
                     let (axis, angle) = o.pose.rotation.axis_angle().map_or((Vector3::x(), 0.0), |(a, t)| (a.into_inner(), t));
                     let shift = o.com.coords - state.anchor;
                     tracing::trace!(
-                        "part {label} at {:.3} s: rotation {angle:.4} rad about [{:.3}, {:.3}, {:.3}], anchor moved [{:.4}, {:.4}, {:.4}] m",
-                        o.stamp, axis.x, axis.y, axis.z, shift.x, shift.y, shift.z
+                        "part {label} at {:.3} s: rotation {angle:.4} rad about [{:.3}, {:.3}, {:.3}], anchor moved [{:.4}, {:.4}, {:.4}] m, {} points, {:.2} matched",
+                        o.stamp, axis.x, axis.y, axis.z, shift.x, shift.y, shift.z, o.points, o.matched
                     );
                 }
             }
@@ -452,8 +461,17 @@ fn observe_part(state: Option<PartState>, stamp: f64, part: SplitPart, cfg: &Per
         let anchor = clean.iter().sum::<Vector3<f64>>() / clean.len().max(1) as f64;
         let tracker = Tracker::new(&clean, cfg);
         let obs = observation(stamp, Isometry3::identity(), None, anchor, cfg, clean.len(), pts.len() - clean.len() + dropped, 1.0);
-        return (PartState { tracker, anchor, frames: Vec::new() }, Some(obs));
+        return (PartState { tracker, anchor, frames: Vec::new(), most_seen: pts.len() + dropped }, Some(obs));
     };
+    let seen = pts.len() + dropped;
+    state.most_seen = state.most_seen.max(seen);
+    // A sliver of a part (a panel turning edge-on, a hatch sliding out of view) constrains its
+    // pose in too few directions: registered, it slides or turns along the free ones, and the
+    // points it then adds to the model make the wrong pose fit later frames too.
+    if (seen as f64) < cfg.min_seen_fraction * state.most_seen as f64 {
+        tracing::trace!("a part at {stamp:.3} s shows {seen} of its most seen {} points: not registered (perception.min_seen_fraction)", state.most_seen);
+        return (state, None);
+    }
     let Some(reg) = state.tracker.update(&FramePoints { points: &pts, weights: &weights }, push.as_ref(), cfg) else { return (state, None) };
     let obs = observation(stamp, reg.pose, Some(&reg.information), state.anchor, cfg, pts.len(), dropped, reg.matched);
     state.frames.push((stamp, pts, weights));
@@ -734,6 +752,24 @@ mod tests {
             mark_pushed(&mut parts, &cloud, push, &cfg);
             assert!(parts.iter().all(|p| p.push.is_none()), "no push, or the prior off (the default)");
         }
+    }
+
+    /// A part seen whole, then as a sliver (a fifth of its points: a panel turned edge-on), then
+    /// whole again: with `min_seen_fraction` the sliver's frame is not registered and the part
+    /// is reported again when it is back; off (the default), every frame is.
+    #[test]
+    fn a_sliver_of_a_part_is_not_registered_when_asked() {
+        // A 20 x 20 grid on a box face, label 1; the sliver keeps its first 4 rows.
+        let grid: Vec<Point3<f64>> =
+            (0..400).map(|k| Point3::new(0.01 * (k % 20) as f64, 0.01 * (k / 20) as f64, 0.02 * ((k % 20) as f64 * 0.3).sin())).collect();
+        let cloud = |t: f64, n: usize| CloudFrame { stamp: t, points: grid[..n].to_vec(), labels: vec![1; n], viewpoint: None };
+        let frames = [cloud(0.0, 400), cloud(0.033, 400), cloud(0.067, 80), cloud(0.1, 400)];
+        let seen = |cfg: PerceptionConfig| -> Vec<f64> {
+            let mut perception = Perception::new(cfg);
+            frames.iter().flat_map(|c| perception.observe(c, None)).map(|(_, o)| o.stamp).collect()
+        };
+        assert_eq!(seen(PerceptionConfig { min_seen_fraction: 0.3, ..PerceptionConfig::default() }), [0.0, 0.033, 0.1]);
+        assert_eq!(seen(PerceptionConfig::default()), [0.0, 0.033, 0.067, 0.1]);
     }
 
     /// A flap (label 3) pushed while the hand hides it in the push's first cloud, where the drawer
