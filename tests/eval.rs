@@ -64,6 +64,11 @@ fn a_three_part_cabinet_reports_every_part_and_the_baselines() {
     let (hit, of) = (covered[0].as_u64().unwrap(), covered[1].as_u64().unwrap());
     assert_eq!(of, 6);
     assert!(hit >= 4, "{hit} of {of} inside the 90% intervals: {}", m["coverage"]);
+    // Both hinge points are scored against their 90% discs, apart from `all`; the rigid body has
+    // none.
+    assert_eq!(m["coverage"]["axis_point"][1].as_u64(), Some(2), "{}", m["coverage"]);
+    assert!(parts[1]["axis_point_covered"].is_boolean() && parts[2]["axis_point_covered"].is_boolean());
+    assert!(parts[0]["axis_point_covered"].is_null());
     // The reported kinodynamics are the collapsed posterior's mode: the right door's damping and
     // friction within 20% of the truth (0.09 and 0.12 when written; 0.47 and 0.36 when that fit
     // stopped after 12 Newton steps, 8 nats below its mode). The left door's sit elsewhere on its

@@ -249,6 +249,9 @@ pub struct Aggregate {
     /// 90% interval coverage, pooled: inside / counted.
     pub coverage: [usize; 2],
     pub coverage_fraction: Option<f64>,
+    /// Revolute hinge points inside their 90% disc, pooled: inside / counted (not in `coverage`;
+    /// [`super::PartMetrics::axis_point_covered`]).
+    pub axis_point_coverage: [usize; 2],
     pub calibration: Calibration,
     pub runtime_s_median: Option<f64>,
     pub runtime_s_max: Option<f64>,
@@ -402,6 +405,7 @@ struct Pooled {
     axis_angle_deg: Option<f64>,
     axis_offset_m: Option<f64>,
     coverage: [usize; 2],
+    axis_point_coverage: [usize; 2],
 }
 
 fn pooled(ms: &[&Metrics]) -> Pooled {
@@ -414,6 +418,7 @@ fn pooled(ms: &[&Metrics]) -> Pooled {
         axis_angle_deg: median(pm.iter().filter(movable).filter_map(|m| m.axis_angle_deg).collect()),
         axis_offset_m: median(pm.iter().filter_map(|m| m.axis_offset_m).collect()),
         coverage: ms.iter().fold([0, 0], |a, m| [a[0] + m.coverage.all[0], a[1] + m.coverage.all[1]]),
+        axis_point_coverage: ms.iter().fold([0, 0], |a, m| [a[0] + m.coverage.axis_point[0], a[1] + m.coverage.axis_point[1]]),
     }
 }
 
@@ -443,6 +448,7 @@ pub fn aggregate(rows: &[&ObjectRow]) -> Aggregate {
         axis_offset_m: p.axis_offset_m,
         coverage: p.coverage,
         coverage_fraction: frac(p.coverage[0], p.coverage[1]),
+        axis_point_coverage: p.axis_point_coverage,
         calibration: calibration(&calls),
         runtime_s_median: median(times.clone()),
         runtime_s_max: times.iter().cloned().reduce(f64::max),
@@ -676,11 +682,13 @@ pub fn render(r: &CorpusReport) -> String {
         }
         let _ = writeln!(
             s,
-            "\n  runtime per object ({}): median {} s, max {} s; wrong parents at P>=0.95: {}",
+            "\n  runtime per object ({}): median {} s, max {} s; wrong parents at P>=0.95: {}; hinge points in their 90% disc: {}/{}",
             format!("{l:?}").to_lowercase(),
             opt(a.runtime_s_median, 2),
             opt(a.runtime_s_max, 2),
-            a.calibration.wrong_confident_parents
+            a.calibration.wrong_confident_parents,
+            a.axis_point_coverage[0],
+            a.axis_point_coverage[1]
         );
     }
     if let Some(g) = &r.agreement {
