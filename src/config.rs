@@ -72,8 +72,10 @@ impl Config {
             return Err(format!("{source}: inference.report_rate must be a positive number, got {}", cfg.inference.report_rate));
         }
         // A negative or NaN discrepancy would make every reported axis spread NaN.
-        if !(cfg.model.axis_discrepancy_deg.is_finite() && cfg.model.axis_discrepancy_deg >= 0.0) {
-            return Err(format!("{source}: model.axis_discrepancy_deg must be a number >= 0, got {}", cfg.model.axis_discrepancy_deg));
+        for (name, v) in [("axis_discrepancy_deg", cfg.model.axis_discrepancy_deg), ("axis_point_discrepancy_m", cfg.model.axis_point_discrepancy_m)] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(format!("{source}: model.{name} must be a number >= 0, got {v}"));
+            }
         }
         Ok(cfg)
     }
@@ -94,6 +96,10 @@ mod tests {
         assert!(e.contains("force_open"), "{e}");
         let e = Config::from_yaml("inference: {report_rate: -0.1}", "test").unwrap_err();
         assert!(e.contains("inference.report_rate"), "{e}");
+        for (bad, key) in [("model: {axis_discrepancy_deg: -1}", "model.axis_discrepancy_deg"), ("model: {axis_point_discrepancy_m: .nan}", "model.axis_point_discrepancy_m")] {
+            let e = Config::from_yaml(bad, "test").unwrap_err();
+            assert!(e.contains(key), "{bad}: {e}");
+        }
     }
 
     /// Every key path of a YAML mapping, `a.b.c`; sequences are values.

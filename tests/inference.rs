@@ -215,7 +215,7 @@ fn nuts_extends_chains_until_the_diagnostics_hold() {
     // (The posterior's own spreads: the model discrepancy is added to both after the widening.)
     let ratio = w.posterior_sd_deg / n.posterior_sd_deg;
     assert!((ratio / inflation.sqrt() - 1.0).abs() < 1e-9, "spread ratio {ratio} for a variance inflation of {inflation}");
-    assert!((w.posterior_q90_deg / n.posterior_q90_deg / inflation.sqrt() - 1.0).abs() < 1e-9 && (w.point_sd_m / n.point_sd_m / inflation.sqrt() - 1.0).abs() < 1e-9, "{w:?} vs {n:?}");
+    assert!((w.posterior_q90_deg / n.posterior_q90_deg / inflation.sqrt() - 1.0).abs() < 1e-9 && (w.point_posterior_sd_m / n.point_posterior_sd_m / inflation.sqrt() - 1.0).abs() < 1e-9, "{w:?} vs {n:?}");
     let d = cfg.model.axis_discrepancy_deg;
     assert!(d > 0.0 && (w.discrepancy_deg, n.discrepancy_deg) == (d, d), "{w:?} vs {n:?}");
     assert!((w.direction_sd_deg - w.posterior_sd_deg.hypot(std::f64::consts::SQRT_2 * d)).abs() < 1e-9, "{w:?}");

@@ -65,6 +65,12 @@ pub struct PartMetrics {
     /// Rayleigh quantile; the axis's tilt at the true point is not added). Not in
     /// [`Coverage::all`].
     pub axis_point_covered: Option<bool>,
+    /// Revolute axes: the reported point spread (RMS distance, m), the posterior's own before
+    /// the model discrepancy (`model.axis_point_discrepancy_m`), and the turn the part was seen
+    /// to make (rad).
+    pub axis_point_sd_m: Option<f64>,
+    pub axis_point_posterior_sd_m: Option<f64>,
+    pub axis_turn_rad: Option<f64>,
 }
 
 /// Calibration over all movable parts: how often the truth lies in the 90% posterior interval.
@@ -239,6 +245,9 @@ fn part_metrics(gt: &GroundTruth, part: &GtPart, post: &Posterior, statics: &[u3
             .filter(|a| a.joint == JointType::Revolute && a.point_sd_m.is_finite())
             .zip(axis_offset_at_point_m)
             .map(|(a, d)| d <= crate::inference::RAYLEIGH_Q90 / std::f64::consts::SQRT_2 * a.point_sd_m),
+        axis_point_sd_m: axis.map(|a| a.point_sd_m).filter(|v| v.is_finite()),
+        axis_point_posterior_sd_m: axis.map(|a| a.point_posterior_sd_m).filter(|v| v.is_finite()),
+        axis_turn_rad: axis.map(|a| a.turn_rad).filter(|v| v.is_finite()),
     }
 }
 

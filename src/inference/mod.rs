@@ -48,6 +48,29 @@ pub struct AxisSummary {
     /// and NUTS are compared by (the discrepancy is the same for both).
     pub posterior_sd_deg: f64,
     pub posterior_q90_deg: f64,
+    /// Revolute: the turn the part was seen to make, the range of the joint's guide-mean
+    /// coordinate over the evidence divided by its radius ([`observed_turn`]) \[rad\]; NaN
+    /// for a prismatic axis or where it is not known.
+    pub turn_rad: f64,
+    /// The model discrepancy in `point_sd_m`: the sd per direction across the axis of the
+    /// displacement added to the posterior's point \[m\]
+    /// ([`ModelConfig::axis_point_discrepancy_m`](crate::model::ModelConfig::axis_point_discrepancy_m);
+    /// 0: none).
+    pub point_discrepancy_m: f64,
+    /// The posterior's own point spread, before the discrepancy \[m\] (NaN when no point).
+    pub point_posterior_sd_m: f64,
+}
+
+/// The turn a revolute joint was seen to make \[rad\]: the range (largest minus smallest) of its
+/// coordinates `q` \[m of centre-of-mass path\] over the radius `r` \[m\] of that path
+/// ([`crate::model::revolute`]). NaN when there are no coordinates or `r` is not positive.
+pub fn observed_turn(coordinates: &[f64], radius: f64) -> f64 {
+    let (lo, hi) = coordinates.iter().filter(|q| q.is_finite()).fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &q| (lo.min(q), hi.max(q)));
+    if hi >= lo && radius > 0.0 {
+        (hi - lo) / radius
+    } else {
+        f64::NAN
+    }
 }
 
 /// `sqrt(-2 ln 0.1)`: the 90% quantile of the length of a 2-D standard normal vector (Rayleigh).
@@ -55,19 +78,30 @@ pub(crate) const RAYLEIGH_Q90: f64 = 2.145_966_026_289_347;
 
 impl AxisSummary {
     /// The spreads with a model discrepancy: an isotropic tilt across the axis of sd `sd_deg`
-    /// per direction, independent of the posterior's, added in quadrature — the RMS angle
-    /// `sqrt(s^2 + 2 sd^2)`, the 90% cone `sqrt(q90^2 + (2.146 sd)^2)` (exact for an isotropic
-    /// Gaussian posterior, whose angle is Rayleigh). The direction, point and the posterior's own
-    /// spreads (`posterior_sd_deg`, `posterior_q90_deg`) stay. Applied once: the spreads it
-    /// widens are always the posterior's.
-    pub fn with_discrepancy(self, sd_deg: f64) -> AxisSummary {
-        let sd = if sd_deg.is_finite() { sd_deg.max(0.0) } else { 0.0 };
+    /// per direction and, for a revolute axis, an isotropic displacement of the point across the
+    /// axis of sd `point_sd_m` per direction, both independent of the posterior's and added in
+    /// quadrature — the RMS angle `sqrt(s^2 + 2 sd^2)`, the 90% cone `sqrt(q90^2 + (2.146
+    /// sd)^2)` (exact for an isotropic Gaussian posterior, whose angle is Rayleigh), the point's
+    /// RMS distance `sqrt(s_p^2 + 2 point_sd^2)`. The direction, point and the posterior's own
+    /// spreads (`posterior_sd_deg`, `posterior_q90_deg`, `point_posterior_sd_m`) stay. Applied
+    /// once: the spreads it widens are always the posterior's. A negative or NaN sd counts as 0.
+    pub fn with_discrepancy(self, sd_deg: f64, point_sd_m: f64) -> AxisSummary {
+        let clean = |v: f64| if v.is_finite() { v.max(0.0) } else { 0.0 };
+        let (sd, psd) = (clean(sd_deg), if self.point.is_some() { clean(point_sd_m) } else { 0.0 });
         AxisSummary {
             direction_sd_deg: self.posterior_sd_deg.hypot(std::f64::consts::SQRT_2 * sd),
             direction_q90_deg: self.posterior_q90_deg.hypot(RAYLEIGH_Q90 * sd).min(180.0),
             discrepancy_deg: sd,
+            point_sd_m: self.point_posterior_sd_m.hypot(std::f64::consts::SQRT_2 * psd),
+            point_discrepancy_m: psd,
             ..self
         }
+    }
+
+    /// [`Self::with_discrepancy`] with the model's discrepancies, `model.axis_discrepancy_deg`
+    /// and `model.axis_point_discrepancy_m`.
+    pub fn with_model_discrepancy(self, model: &crate::model::ModelConfig) -> AxisSummary {
+        self.with_discrepancy(model.axis_discrepancy_deg, model.axis_point_discrepancy_m)
     }
 }
 

@@ -116,6 +116,16 @@ pub struct ModelConfig {
     /// estimate or joint type. 1.6, chosen on the corpus's `tune` objects (README
     /// "Generalization", stop 77).
     pub axis_discrepancy_deg: f64,
+    /// Model discrepancy of a reported revolute axis point \[m\]: the sd, per direction across
+    /// the axis, of an isotropic displacement added to the posterior's spread of the point (0:
+    /// none). The hinge line fitted to a panel's registered track misses the true one by 1-5 cm
+    /// where the posterior allows millimetres, and by no less after a turn of 1.2 rad than of
+    /// 0.3 (a panel's registration can slide in its own plane, which only its outline pins), so
+    /// the term is a length, not a position error divided by the turn. It widens `point_sd_m` in
+    /// quadrature ([`crate::inference::AxisSummary::with_discrepancy`]) and moves no estimate or
+    /// joint type. 0.0225, chosen on the corpus's `tune` objects (README "Generalization", stop
+    /// 78).
+    pub axis_point_discrepancy_m: f64,
     /// Median and log-sd of the log-normal prior on the velocity scale of the random-walk prior
     /// on joint coordinates (kinematic mode) [m/s of centre-of-mass path].
     pub velocity_sd_mps: f64,
@@ -156,6 +166,7 @@ impl Default for ModelConfig {
             rotation_noise_log_sd: 1.0,
             axis_point_sd_m: 0.2,
             axis_discrepancy_deg: 1.6,
+            axis_point_discrepancy_m: 0.0225,
             velocity_sd_mps: 0.5,
             velocity_log_sd: 1.5,
             window_start_sd_m: 1.0,

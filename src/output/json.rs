@@ -43,6 +43,13 @@ pub struct AxisJson {
     pub direction_discrepancy_deg: f64,
     pub direction_posterior_sd_deg: f64,
     pub direction_posterior_q90_deg: f64,
+    /// Revolute: the turn the part was seen to make (rad), the model discrepancy in `point_sd_m`
+    /// (sd per direction across the axis, m; `model.axis_point_discrepancy_m`), and the
+    /// posterior's own point spread before it (m; beyond the contract's example;
+    /// [`crate::inference::AxisSummary::with_discrepancy`]).
+    pub turn_rad: Option<f64>,
+    pub point_discrepancy_m: Option<f64>,
+    pub point_posterior_sd_m: Option<f64>,
 }
 
 /// A kinodynamic parameter: median, sd and (beyond the contract's example) the 90% interval.
@@ -229,6 +236,9 @@ pub fn model_json(p: &Posterior) -> ModelJson {
                 direction_discrepancy_deg: a.discrepancy_deg,
                 direction_posterior_sd_deg: a.posterior_sd_deg,
                 direction_posterior_q90_deg: a.posterior_q90_deg,
+                turn_rad: finite(a.turn_rad),
+                point_discrepancy_m: a.point.map(|_| a.point_discrepancy_m),
+                point_posterior_sd_m: finite(a.point_posterior_sd_m),
             }),
             com: {
                 let ty = j.axis.as_ref().filter(|_| j.map_type.movable()).map_or(j.map_type, |a| a.joint);
