@@ -247,7 +247,7 @@ fn part_metrics(gt: &GroundTruth, part: &GtPart, post: &Posterior, statics: &[u3
             .map(|(a, d)| d <= crate::inference::RAYLEIGH_Q90 / std::f64::consts::SQRT_2 * a.point_sd_m),
         axis_point_sd_m: axis.map(|a| a.point_sd_m).filter(|v| v.is_finite()),
         axis_point_posterior_sd_m: axis.map(|a| a.point_posterior_sd_m).filter(|v| v.is_finite()),
-        axis_turn_rad: axis.map(|a| a.turn_rad).filter(|v| v.is_finite()),
+        axis_turn_rad: joint.filter(|_| axis.is_some()).map(|j| j.turn_rad()).filter(|v| v.is_finite()),
     }
 }
 

@@ -48,10 +48,6 @@ pub struct AxisSummary {
     /// and NUTS are compared by (the discrepancy is the same for both).
     pub posterior_sd_deg: f64,
     pub posterior_q90_deg: f64,
-    /// Revolute: the turn the part was seen to make, the range of the joint's guide-mean
-    /// coordinate over the evidence divided by its radius ([`observed_turn`]) \[rad\]; NaN
-    /// for a prismatic axis or where it is not known.
-    pub turn_rad: f64,
     /// The model discrepancy in `point_sd_m`: the sd per direction across the axis of the
     /// displacement added to the posterior's point \[m\]
     /// ([`ModelConfig::axis_point_discrepancy_m`](crate::model::ModelConfig::axis_point_discrepancy_m);
@@ -64,7 +60,7 @@ pub struct AxisSummary {
 /// The turn a revolute joint was seen to make \[rad\]: the range (largest minus smallest) of its
 /// coordinates `q` \[m of centre-of-mass path\] over the radius `r` \[m\] of that path
 /// ([`crate::model::revolute`]). NaN when there are no coordinates or `r` is not positive.
-pub fn observed_turn(coordinates: &[f64], radius: f64) -> f64 {
+fn observed_turn(coordinates: &[f64], radius: f64) -> f64 {
     let (lo, hi) = coordinates.iter().filter(|q| q.is_finite()).fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &q| (lo.min(q), hi.max(q)));
     if hi >= lo && radius > 0.0 {
         (hi - lo) / radius
@@ -146,6 +142,21 @@ pub struct JointSummary {
     pub mean_params: [JointParams<f64>; 3],
     /// Guide-mean joint coordinates per type on the evidence grid [m of path].
     pub coordinates: [Vec<f64>; 3],
+}
+
+impl JointSummary {
+    /// The turn the part was seen to make about its revolute axis \[rad\]: the range of the
+    /// revolute joint's guide-mean coordinate over the evidence over that joint's mean radius;
+    /// NaN when the reported axis is not revolute.
+    pub fn turn_rad(&self) -> f64 {
+        match &self.axis {
+            Some(a) if a.joint == JointType::Revolute => {
+                let k = JointType::Revolute.index();
+                observed_turn(&self.coordinates[k], self.mean_params[k].radius)
+            }
+            _ => f64::NAN,
+        }
+    }
 }
 
 /// A fitted posterior.

@@ -47,7 +47,7 @@ use statrs::distribution::{ContinuousCDF, Normal};
 use super::guide::GuideState;
 use super::summary::{axis_from_draws, estimate_from_draws, widened};
 use super::svi::Fitted;
-use super::{AxisSummary, Kinodynamics, Posterior};
+use super::{Kinodynamics, Posterior};
 use crate::model::density::{Density, NonCentred, Structure};
 use crate::model::likelihood::Evidence;
 use crate::model::{dynamics, JointParams, JointType, ModelConfig};
@@ -731,8 +731,7 @@ fn summarise_map(posterior: &mut Posterior, density: &Density<'_>, sd: &Structur
         let reference = j.axis.as_ref().map(|a| a.direction).unwrap_or(params[0].direction);
         // SVI's widening of the axis for what the likelihood leaves out (module docs).
         let inflation = j.axis.as_ref().map_or(1.0, |a| a.inflation);
-        let turn_rad = if s.joint == JointType::Revolute { super::observed_turn(&j.coordinates[s.joint.index()], j.mean_params[s.joint.index()].radius) } else { f64::NAN };
-        j.axis = Some(widened(AxisSummary { turn_rad, ..axis_from_draws(s.joint, &reference, &params, &params) }, inflation).with_model_discrepancy(model));
+        j.axis = Some(widened(axis_from_draws(s.joint, &reference, &params, &params), inflation).with_model_discrepancy(model));
         j.kinodynamics = s.kd.map(|(o, _)| {
             let kp: Vec<dynamics::KinoParams<f64>> = all.iter().map(|x| dynamics::decode::<f64>(s.joint, &x[o..], &ev.effects[i], &model.dynamics)).collect();
             let est = |f: &dyn Fn(&dynamics::KinoParams<f64>) -> f64| estimate_from_draws(&kp.iter().map(f).collect::<Vec<f64>>());

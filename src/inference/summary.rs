@@ -112,11 +112,7 @@ fn axis_summary(ev: &Evidence, i: usize, b: &Block, theta: &[f64], model: &Model
         draws.push(decode::<f64>(b.joint, &draw(1.0), &ev.parts[i].com0, model));
         wide.push(decode::<f64>(b.joint, &draw(widen), &ev.parts[i].com0, model));
     }
-    let turn_rad = match b.q {
-        Some((qm, _)) if b.joint == JointType::Revolute => super::observed_turn(&theta[qm..qm + ev.len()], mean.radius),
-        _ => f64::NAN,
-    };
-    AxisSummary { inflation: widen * widen, turn_rad, ..axis_from_draws(b.joint, &mean.direction, &draws, &wide) }
+    AxisSummary { inflation: widen * widen, ..axis_from_draws(b.joint, &mean.direction, &draws, &wide) }
 }
 
 /// An axis summary from posterior draws of a joint's parameters: the mean direction (draws
@@ -154,7 +150,6 @@ pub fn axis_from_draws(joint: JointType, reference: &Vector3<f64>, draws: &[Join
         discrepancy_deg: 0.0,
         posterior_sd_deg: sd_deg,
         posterior_q90_deg: q90,
-        turn_rad: f64::NAN,
         point_discrepancy_m: 0.0,
         point_posterior_sd_m: point_sd,
     }

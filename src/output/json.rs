@@ -236,7 +236,7 @@ pub fn model_json(p: &Posterior) -> ModelJson {
                 direction_discrepancy_deg: a.discrepancy_deg,
                 direction_posterior_sd_deg: a.posterior_sd_deg,
                 direction_posterior_q90_deg: a.posterior_q90_deg,
-                turn_rad: finite(a.turn_rad),
+                turn_rad: finite(j.turn_rad()),
                 point_discrepancy_m: a.point.map(|_| a.point_discrepancy_m),
                 point_posterior_sd_m: finite(a.point_posterior_sd_m),
             }),
