@@ -986,16 +986,22 @@ fn fit_from(
         // after the window that pushed it (corpus object 57 of the tune split); natural-gradient
         // steps change one factor at a time and cannot leave such a joint optimum.
         //
-        // Likewise, where the joint types are compared on `n_eff / n` (kinematic mode,
-        // [`comparison_weights`]), a part the previous fit called rigid that the data of all
-        // windows now call movable takes its joint-type factor from the data. The weight is
-        // estimated from the residuals under the part's most probable type: under a rigid joint
+        // Likewise, a part the previous fit called rigid that the data of all windows now call
+        // movable (the start structure) takes its joint-type factor from the data: the previous
+        // type was fitted on windows in which the part had not moved. Kept, its rigid logits
+        // hold the part while other factors settle around it, and a rigid part is a free
+        // parent: a drawer hung from another that had not moved yet, and when the second drawer
+        // was pushed (the last of four windows, 4 cm against 34 N s/m), its prismatic joint would
+        // have moved the first drawer too, so it stayed rigid at P = 0.55 (`corpus2` object 11,
+        // tune; issue 24's class 1). In kinematic mode, where the types are compared on
+        // `n_eff / n` ([`comparison_weights`]), there is a second reason: the weight is
+        // estimated from the residuals under the part's most probable type; under a rigid joint
         // that has stopped fitting a part that now moves, those residuals are the motion itself,
-        // correlated from frame to frame, so the weight collapsed and with it the
-        // evidence that would have overturned the type (tune object 9, four separate episodes: a
-        // drawer first pulled in the fourth stayed rigid at P = 0.96, its weight 0.067; fitted
-        // afresh on all four it is prismatic, and from the data's type factor its weight is 0.59
-        // and it is prismatic).
+        // correlated from frame to frame, so the weight collapsed and with it the evidence that
+        // would have overturned the type (tune object 9, four separate episodes: a drawer first
+        // pulled in the fourth stayed rigid at P = 0.96, its weight 0.067; fitted afresh on all
+        // four it is prismatic, and from the data's type factor its weight is 0.59 and it is
+        // prismatic).
         for (i, &start_type) in start_types.iter().enumerate() {
             let o = layout.parent_logits[i];
             let warm_parent = (0..=n).filter(|&j| j != i + 1).max_by(|&a, &b| theta[o + a].total_cmp(&theta[o + b])).unwrap_or(0);
@@ -1005,7 +1011,7 @@ fn fit_from(
                 tracing::debug!("part {}: warm parent {warm_parent} differs from the start tree's {}; discrete factors from the data", ev.parts[i].label, start.parent[i]);
                 theta[o..o + n + 1].copy_from_slice(&data[o..o + n + 1]);
                 theta[t..t + 3].copy_from_slice(&data[t..t + 3]);
-            } else if coarsen && warm_type == 0 && start_type != 0 {
+            } else if warm_type == 0 && start_type != 0 {
                 tracing::debug!("part {}: rigid in the previous fit, movable in the start structure; type factor from the data", ev.parts[i].label);
                 theta[t..t + 3].copy_from_slice(&data[t..t + 3]);
             }
