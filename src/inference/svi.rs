@@ -165,8 +165,8 @@ pub struct SviConfig {
     /// by their coordinate blocks' Laplace evidence rather than by a bound that is loosest for
     /// a part seen in few frames. Default false: on `tune` it turned 3 calls right and made a wrong
     /// one confident (P 0.75 -> 0.99), on `validation` it turned 1 call right and 4 wrong over
-    /// config seeds 0-2 (README, "Generalization", stop 80); the larger gap, between the
-    /// coordinates and the kinodynamic factor, is not in it.
+    /// config seeds 0-2 (README, "Generalization", stop 80). It is not the larger share of the
+    /// deficit of a part seen in few frames (there: the unseen frames' guide, measured in the README).
     pub coordinate_gap: bool,
     /// Dynamic mode: grid frames up to this long after a window \[s\] (and before the next) join
     /// the evidence as the joint at rest, outside the physics window
@@ -295,8 +295,8 @@ fn sample_block(ev: &Evidence, i: usize, b: &Block, theta: &[f64], model: &Model
 /// rigid, which has no coordinates — a part barely seen was called rigid with certainty (README,
 /// `corpus2` obj039). Added to the movable types' conditional ELBOs (`SviConfig::coordinate_gap`),
 /// the joint-type comparison is between the blocks' evidences. Its gradient is not followed (it
-/// is not the guide's to maximise). On obj039 it is 10-13 nats of an 82-nat deficit: the rest
-/// lies between the coordinates and the kinodynamic factor, which this does not hold.
+/// is not the guide's to maximise). On obj039 it is 10-13 nats of an 82-nat deficit; the rest
+/// is the unseen frames' guide sitting off the physics' path (README, stop 80).
 fn coordinate_gap(ev: &Evidence, theta: &[f64], qm: usize, qs: usize, sigma_d: f64, model: &ModelConfig) -> f64 {
     let k = ev.len();
     if k == 0 || !(sigma_d > 0.0) {
