@@ -283,11 +283,12 @@ fn sample_block(ev: &Evidence, i: usize, b: &Block, theta: &[f64], model: &Model
 /// The mean-field gap of a movable joint's coordinate block in dynamic mode
 /// ([`laplace::mean_field_gap`]): what the independent coordinates of the guide (means at
 /// `theta[qm..]`, log-sds at `theta[qs..]`, one per grid frame) lose against the physics prior's
-/// correlations, at deviation scale `sigma_d` \[m of path\]. The prior's precision is that of [`physics_prior`] taken
-/// linear and Gaussian: every window frame after the first tied to the first (`Psi_t` moves with
-/// `q_{w,0}` one for one, its Student-t by its Fisher information `(nu + 1) / ((nu + 3) sigma_d^2)`),
-/// every rest frame to the window frame it rests at, a window that continues the previous one
-/// to that one's last frame, the window starts by [`window_start_prior`]'s curvature.
+/// correlations, at deviation scale `sigma_d` \[m of path\]. The prior's precision is that of
+/// [`physics_prior`] taken linear and Gaussian: every window frame after the first tied to the
+/// first (`Psi_t` moves with `q_{w,0}` one for one, its Student-t by its Fisher information
+/// `(nu + 1) / ((nu + 3) sigma_d^2)`), every rest frame to the window frame it rests at, a window
+/// that continues the previous one to that one's last frame, the window starts by
+/// [`window_start_prior`]'s curvature.
 ///
 /// Why: a conditional ELBO's coordinate block is short of the block's Laplace evidence by this
 /// gap, most where the part is not observed (the chain's correlation is then all the posterior
@@ -326,14 +327,11 @@ fn coordinate_gap(ev: &Evidence, theta: &[f64], qm: usize, qs: usize, sigma_d: f
             prior_diag[v] += w;
         }
     }
-    let comps = [(model.window_reset_prob.clamp(0.0, 1.0), model.window_reset_sd_m), (1.0 - model.window_reset_prob.clamp(0.0, 1.0), model.window_start_sd_m)];
     for f in window_starts(ev) {
+        // The start prior's curvature: `d/ds E_q[log p] = -s * sum_c r_c / sd_c^2` for its mixture.
         let (m, sd) = (theta[qm + f], theta[qs + f].exp());
-        // The mixture's curvature: each component's precision by its responsibility.
-        let e = comps.map(|(p, c)| if p > 0.0 && c > 0.0 { p.ln() - (m * m + sd * sd) / (2.0 * c * c) - c.ln() } else { f64::NEG_INFINITY });
-        let top = e[0].max(e[1]);
-        let z: f64 = e.iter().map(|x| (x - top).exp()).sum();
-        prior_diag[f] += e.iter().zip(&comps).map(|(x, &(_, c))| if c > 0.0 { (x - top).exp() / z / (c * c) } else { 0.0 }).sum::<f64>();
+        let (_, _, ds) = window_start_prior(m, sd, model);
+        prior_diag[f] += (-ds / sd).max(0.0);
     }
     let guide: Vec<f64> = (0..k).map(|t| (-2.0 * theta[qs + t]).exp()).collect();
     laplace::mean_field_gap(&guide, &prior_diag, &edges)
