@@ -190,11 +190,43 @@ pub fn physics_prior(
     transforms: &[Vec<Displacement<f64>>],
     model: &ModelConfig,
     robust: bool,
-    mut scores: Option<&mut Vec<Vec<f64>>>,
+    scores: Option<&mut Vec<Vec<f64>>>,
 ) -> (f64, Vec<f64>, Vec<f64>) {
-    let Some(xi) = s.kd else { return (0.0, vec![], vec![]) };
+    let (l, gx, gq, _) = physics_prior_collapsed(ev, i, s, observed, pre, desc, chosen, transforms, model, robust, scores, None);
+    (l, gx, gq)
+}
+
+/// [`physics_prior`] and, fourth, its value with the coordinates of the grid frames flagged in
+/// `skip` integrated out (one flag per grid frame; `None`: none): a flagged rest frame's term
+/// drops, a flagged window frame after the first is integrated out of the window's prior
+/// ([`dynamics::robust_window_prior_collapsed`]), and a window whose frames are all flagged drops
+/// with the rest term that ties its first frame to the previous window. Exact where the flags
+/// mark leaves of the prior's graph, peeled from the ends (the caller's duty: a window's last
+/// frame only with the rest frames after it and the next window's first where that continues
+/// it; a first frame only with its whole window).
+/// The gradients are those of the full prior. See [`crate::inference::svi`] for the use: the
+/// joint-type comparison on frames in which nothing observes the joint.
+#[allow(clippy::too_many_arguments)]
+pub fn physics_prior_collapsed(
+    ev: &Evidence,
+    i: usize,
+    s: &PartValue<'_>,
+    observed: Option<&dynamics::Observed>,
+    pre: &[Displacement<f64>],
+    desc: &[usize],
+    chosen: &[PartValue<'_>],
+    transforms: &[Vec<Displacement<f64>>],
+    model: &ModelConfig,
+    robust: bool,
+    mut scores: Option<&mut Vec<Vec<f64>>>,
+    skip: Option<&[bool]>,
+) -> (f64, Vec<f64>, Vec<f64>, f64) {
+    let Some(xi) = s.kd else { return (0.0, vec![], vec![], 0.0) };
     let dyncfg = &model.dynamics;
     let (mut l, mut gx, mut gq) = (0.0, vec![0.0; xi.len()], vec![0.0; ev.len()]);
+    // The share of `l` that the frames flagged in `skip` carry.
+    let mut skipped = 0.0;
+    let flagged = |t: usize| skip.is_some_and(|f| f.get(t).copied().unwrap_or(false));
     if let Some(sc) = scores.as_deref_mut() {
         sc.clear();
     }
@@ -206,27 +238,40 @@ pub fn physics_prior(
         // the same deviation scale — while the object is watched (not across separate episodes).
         if w > 0 && win.continues {
             let (a, b) = (ev.windows[w - 1].frames[ev.windows[w - 1].frames.len() - 1], win.frames[0]);
-            l += rest_term(s.q, a, b, rest_sd, dyncfg.deviation_log_sd, &mut gq, &mut gx[3]);
+            let r = rest_term(s.q, a, b, rest_sd, dyncfg.deviation_log_sd, &mut gq, &mut gx[3]);
+            l += r;
+            if flagged(b) {
+                skipped += r;
+            }
         }
         // Before the window the joint rests where the physics window starts it (rest frames before).
         for &b in &win.rest_before {
-            l += rest_term(s.q, win.frames[0], b, rest_sd, dyncfg.deviation_log_sd, &mut gq, &mut gx[3]);
+            let r = rest_term(s.q, win.frames[0], b, rest_sd, dyncfg.deviation_log_sd, &mut gq, &mut gx[3]);
+            l += r;
+            if flagged(b) {
+                skipped += r;
+            }
         }
         // After the window the joint rests where the physics window left it (rest frames).
         if let Some(&a) = win.frames.last() {
             for &b in &win.rest {
-                l += rest_term(s.q, a, b, rest_sd, dyncfg.deviation_log_sd, &mut gq, &mut gx[3]);
+                let r = rest_term(s.q, a, b, rest_sd, dyncfg.deviation_log_sd, &mut gq, &mut gx[3]);
+                l += r;
+                if flagged(b) {
+                    skipped += r;
+                }
             }
         }
         let wj = window_joint(ev, i, s, win, pre, desc, chosen, transforms, model);
         let jw = wj.view(ev.effects[i]);
-        let (lw, gxw, gqw) = if robust {
-            let (l, gx, gq, _) = dynamics::robust_window_prior(&jw, win, s.q, observed, xi, dyncfg, model.velocity_sd_mps);
-            (l, gx, gq)
+        let (lw, gxw, gqw, lw_kept) = if robust {
+            let (l, gx, gq, _, kept) = dynamics::robust_window_prior_collapsed(&jw, win, s.q, observed, xi, dyncfg, model.velocity_sd_mps, skip);
+            (l, gx, gq, kept)
         } else {
-            dynamics::window_prior(&jw, win, s.q, observed, xi, dyncfg)
+            dynamics::window_prior_split(&jw, win, s.q, observed, xi, dyncfg, skip)
         };
         l += lw;
+        skipped += lw - lw_kept;
         for (a, b) in gx.iter_mut().zip(&gxw) {
             *a += b;
         }
@@ -237,7 +282,7 @@ pub fn physics_prior(
             sc.push(gx.iter().zip(before).map(|(a, b)| a - b).collect());
         }
     }
-    (l, gx, gq)
+    (l, gx, gq, l - skipped)
 }
 
 /// Part `i`'s joint in one window as the physics sees it (fixed frame, at the window's start

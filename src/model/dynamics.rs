@@ -222,10 +222,17 @@ pub struct JointInWindow<'a> {
 pub fn window_prior(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64], observed: Option<&Observed>, xi: &[f64], cfg: &DynamicsConfig) -> (f64, Vec<f64>, Vec<f64>) {
     // Dual numbers as wide as the parameters plus `q_{w,0}`: the base model's 4 + 1 are the
     // common case and the cheapest.
+    let (l, gx, gq, _) = window_prior_split(jw, win, q, observed, xi, cfg, None);
+    (l, gx, gq)
+}
+
+/// [`window_prior`] and, fourth, its value over the frames not flagged in `skip` (see
+/// [`robust_window_prior_collapsed`]).
+pub fn window_prior_split(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64], observed: Option<&Observed>, xi: &[f64], cfg: &DynamicsConfig, skip: Option<&[bool]>) -> (f64, Vec<f64>, Vec<f64>, f64) {
     match xi.len() {
-        0..=4 => window_prior_n::<5>(jw, win, q, observed, xi, cfg),
-        5..=6 => window_prior_n::<7>(jw, win, q, observed, xi, cfg),
-        7..=10 => window_prior_n::<11>(jw, win, q, observed, xi, cfg),
+        0..=4 => window_prior_n::<5>(jw, win, q, observed, xi, cfg, skip),
+        5..=6 => window_prior_n::<7>(jw, win, q, observed, xi, cfg, skip),
+        7..=10 => window_prior_n::<11>(jw, win, q, observed, xi, cfg, skip),
         n => panic!("{n} kinodynamic parameters: at most 10 (4 base, 6 of effects)"),
     }
 }
@@ -257,38 +264,90 @@ pub fn robust_window_prior(
     cfg: &DynamicsConfig,
     velocity_sd_mps: f64,
 ) -> (f64, Vec<f64>, Vec<f64>, f64) {
-    let (lp, gxp, gqp) = window_prior(jw, win, q, observed, xi, cfg);
-    let eps = cfg.window_outlier_prob;
-    if eps <= 0.0 || win.frames.len() < 2 {
-        return (lp, gxp, gqp, 1.0);
-    }
-    let (lw, gqw) = window_random_walk(win, q, observed, velocity_sd_mps);
-    let (a, b) = ((1.0 - eps).ln() + lp, eps.ln() + lw);
-    let m = a.max(b);
-    let l = m + ((a - m).exp() + (b - m).exp()).ln();
-    let r = (a - l).exp();
-    let gx = gxp.iter().map(|g| r * g).collect();
-    let gq = gqp.iter().zip(&gqw).map(|(p, w)| r * p + (1.0 - r) * w).collect();
+    let (l, gx, gq, r, _) = robust_window_prior_collapsed(jw, win, q, observed, xi, cfg, velocity_sd_mps, None);
     (l, gx, gq, r)
 }
 
+/// [`robust_window_prior`] and, as its fifth value, the same log density with the coordinates of
+/// the window frames flagged in `skip` (one flag per grid frame; `None`: none) integrated out:
+/// the physics holds in the window with the kept frames' Student-t terms, and the random walk
+/// joins the kept frames with the skipped frames' increments summed (a sum of Gaussian increments
+/// is Gaussian with their variances summed). Both are exact where a skipped frame is a leaf of the
+/// physics prior's graph: the window's last frame only when the rest frames after it and a next
+/// window that continues it are integrated out too (the caller's duty), and its first (every
+/// other frame's simulation starts there) only with the whole window, which then contributes 0;
+/// the first frame flagged alone is kept. The gradients are those of the full density.
+///
+/// Why: a frame in which the part (and every part it carries) is unseen informs its coordinate
+/// only through this prior; the exact marginal over that coordinate is 1 under any joint type,
+/// while a mean-field guide pays `KL(q(q_t) || p(q_t | rest))` for it — a cost that only movable
+/// types carry and that grows with the unseen frames (README, "Generalization", stop 81).
+#[allow(clippy::too_many_arguments)]
+pub fn robust_window_prior_collapsed(
+    jw: &JointInWindow<'_>,
+    win: &WindowEvidence,
+    q: &[f64],
+    observed: Option<&Observed>,
+    xi: &[f64],
+    cfg: &DynamicsConfig,
+    velocity_sd_mps: f64,
+    skip: Option<&[bool]>,
+) -> (f64, Vec<f64>, Vec<f64>, f64, f64) {
+    let (lp, gxp, gqp, lp_kept) = window_prior_split(jw, win, q, observed, xi, cfg, skip);
+    let eps = cfg.window_outlier_prob;
+    if eps <= 0.0 || win.frames.len() < 2 {
+        return (lp, gxp, gqp, 1.0, lp_kept);
+    }
+    let (lw, gqw, lw_kept) = window_random_walk(win, q, observed, velocity_sd_mps, skip);
+    let mix = |lp: f64, lw: f64| {
+        let (a, b) = ((1.0 - eps).ln() + lp, eps.ln() + lw);
+        let m = a.max(b);
+        let l = m + ((a - m).exp() + (b - m).exp()).ln();
+        (l, (a - l).exp())
+    };
+    let (l, r) = mix(lp, lw);
+    let (l_kept, _) = mix(lp_kept, lw_kept);
+    let gx = gxp.iter().map(|g| r * g).collect();
+    let gq = gqp.iter().zip(&gqw).map(|(p, w)| r * p + (1.0 - r) * w).collect();
+    (l, gx, gq, r, l_kept)
+}
+
+/// Whether window frame `k` (of `n`, grid frame `t`) is integrated out under `skip`: a frame
+/// after the first where flagged; the first only together with every other (the whole window).
+fn skipped(skip: Option<&[bool]>, k: usize, t: usize, frames: &[usize]) -> bool {
+    let flagged = |t: usize| skip.is_some_and(|s| s.get(t).copied().unwrap_or(false));
+    if k == 0 { frames.iter().all(|&f| flagged(f)) } else { flagged(t) }
+}
+
 /// Log density of a window's coordinates after its first under a Gaussian random walk of
-/// velocity scale `v` \[m/s\] (see [`robust_window_prior`]) and its gradient per window frame.
-fn window_random_walk(win: &WindowEvidence, q: &[f64], observed: Option<&Observed>, v: f64) -> (f64, Vec<f64>) {
+/// velocity scale `v` \[m/s\] (see [`robust_window_prior`]) and its gradient per window frame;
+/// third, the density of the frames not flagged in `skip` (the flagged frames' increments summed
+/// into the next kept frame's: [`robust_window_prior_collapsed`]).
+fn window_random_walk(win: &WindowEvidence, q: &[f64], observed: Option<&Observed>, v: f64, skip: Option<&[bool]>) -> (f64, Vec<f64>, f64) {
     let frames = &win.frames;
-    let mut gq = vec![0.0; frames.len()];
+    let n = frames.len();
+    let mut gq = vec![0.0; n];
     let mut l = 0.0;
-    for k in 1..frames.len() {
+    let (mut l_kept, mut last_kept, mut walk_var) = (0.0, 0usize, 0.0);
+    let term = |d: f64, var: f64| -d * d / (2.0 * var) - 0.5 * (2.0 * std::f64::consts::PI * var).ln();
+    for k in 1..n {
         let (a, b) = (frames[k - 1], frames[k]);
         let dt = ((win.frame_substep[k] as f64 - win.frame_substep[k - 1] as f64) * win.h).max(win.h);
         let r2 = observed.map_or(0.0, |o| o.var[a] + o.var[b]);
         let var = (v * dt).powi(2) + r2;
         let d = q[b] - q[a];
-        l += -d * d / (2.0 * var) - 0.5 * (2.0 * std::f64::consts::PI * var).ln();
+        l += term(d, var);
         gq[k] -= d / var;
         gq[k - 1] += d / var;
+        walk_var += (v * dt).powi(2);
+        if !skipped(skip, k, b, frames) {
+            let a = frames[last_kept];
+            let r2 = observed.map_or(0.0, |o| o.var[a] + o.var[b]);
+            l_kept += term(q[b] - q[a], walk_var + r2);
+            (last_kept, walk_var) = (k, 0.0);
+        }
     }
-    (l, gq)
+    (l, gq, l_kept)
 }
 
 /// The simulated trajectory of one joint in one window, in metres of path at every integration
@@ -411,7 +470,16 @@ fn student_score(d: f64, var: f64, nu: f64) -> f64 {
     }
 }
 
-fn window_prior_n<const N: usize>(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64], observed: Option<&Observed>, xi: &[f64], cfg: &DynamicsConfig) -> (f64, Vec<f64>, Vec<f64>) {
+#[allow(clippy::too_many_arguments)]
+fn window_prior_n<const N: usize>(
+    jw: &JointInWindow<'_>,
+    win: &WindowEvidence,
+    q: &[f64],
+    observed: Option<&Observed>,
+    xi: &[f64],
+    cfg: &DynamicsConfig,
+    skip: Option<&[bool]>,
+) -> (f64, Vec<f64>, Vec<f64>, f64) {
     type D<const N: usize> = DualSVec64<N>;
     let nk = xi.len();
     let q0_slot = N - 1;
@@ -425,26 +493,32 @@ fn window_prior_n<const N: usize>(jw: &JointInWindow<'_>, win: &WindowEvidence, 
     let half_log_dev2 = num_dual::DualNum::ln(&dev2) * 0.5;
     let mut ll = D::<N>::from(0.0);
     let mut gq = vec![0.0; frames.len()];
+    // The skipped frames' share of the value (their terms are leaves: each integrates to 1).
+    let mut skipped_value = 0.0;
     for (k, &t) in frames.iter().enumerate().skip(1) {
         let psi = traj.as_ref().map_or(q0, |tr| tr[win.frame_substep[k]]);
         let d = D::<N>::from(q[t]) - psi;
-        match observed.map(|o| (o.var[t], o.nu)) {
+        let term = match observed.map(|o| (o.var[t], o.nu)) {
             Some((r2, obs_nu)) if r2 > 0.0 => {
                 let var = dev2 + r2;
-                ll += super::likelihood::log_student(d * d / var, num_dual::DualNum::ln(&var) * 0.5, 1, obs_nu);
                 gq[k] = student_score(d.re, var.re, obs_nu);
+                super::likelihood::log_student(d * d / var, num_dual::DualNum::ln(&var) * 0.5, 1, obs_nu)
             }
             _ => {
-                ll += super::likelihood::log_student(d * d / dev2, half_log_dev2, 1, cfg.deviation_nu);
                 // Direct derivative with respect to q_t (the dual part carries d/d q_{w,0} via psi).
                 gq[k] = student_score(d.re, dev2.re, cfg.deviation_nu);
+                super::likelihood::log_student(d * d / dev2, half_log_dev2, 1, cfg.deviation_nu)
             }
+        };
+        if skipped(skip, k, t, frames) {
+            skipped_value += term.re;
         }
+        ll += term;
     }
     let eps = ll.eps.unwrap_generic(nalgebra::Const::<N>, nalgebra::U1);
     let gx: Vec<f64> = (0..nk).map(|j| eps[j]).collect();
     gq[0] += eps[q0_slot];
-    (ll.re, gx, gq)
+    (ll.re, gx, gq, ll.re - skipped_value)
 }
 
 #[cfg(test)]
@@ -630,5 +704,82 @@ mod tests {
                 assert!((d - gq[k]).abs() < 1e-4 * (1.0 + d.abs()), "r {r:.3} q[{k}]: fd {d} vs {}", gq[k]);
             }
         }
+    }
+
+    /// Frames integrated out of the window-robust prior: its collapsed value is the log of the
+    /// full density integrated over the skipped coordinates (numerically, over a wide fine grid),
+    /// for one frame through the physics-or-random-walk mixture in both regimes, and for two
+    /// adjacent frames of the random walk alone (their increments merged); the window's first
+    /// frame only with the whole window (which then integrates to 1).
+    #[test]
+    fn collapsed_window_prior_is_the_marginal_over_the_skipped_frames() {
+        let cfg = DynamicsConfig::default();
+        let joint = door(Vector3::z());
+        let unit_inertia = Matrix3::from_diagonal(&Vector3::new(0.01, 0.01, 0.02));
+        let jw = JointInWindow { joint: &joint, com: joint.com, unit_inertia, subtree: vec![], pushed: true, effects: EffectSet::default() };
+        let (win, q, truth) = simulated_push(&cfg, &joint, unit_inertia);
+        let v = crate::model::ModelConfig::default().velocity_sd_mps;
+        // The deviation scale where both components matter (sd 6.7 cm against a walk's 8.3 cm).
+        let xi = [truth[0], truth[1], truth[2], 2.6];
+        let k = 6;
+        let t = win.frames[k];
+        let mut skip = vec![false; q.len()];
+        skip[t] = true;
+        let log_integral = |f: &dyn Fn(&[f64]) -> f64, at: &[f64], t: usize| {
+            let (h, half) = (0.001, 1500);
+            let vals: Vec<f64> = (-half..=half)
+                .map(|j| {
+                    let mut x = at.to_vec();
+                    x[t] = at[t] + j as f64 * h;
+                    f(&x)
+                })
+                .collect();
+            let m = vals.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+            m + (vals.iter().map(|v| (v - m).exp()).sum::<f64>() * h).ln()
+        };
+        let back: Vec<f64> = q.iter().map(|x| -x).collect();
+        for qq in [&q, &back] {
+            let (l, _, _, r, kept) = robust_window_prior_collapsed(&jw, &win, qq, None, &xi, &cfg, v, Some(&skip));
+            assert_eq!(l, robust_window_prior(&jw, &win, qq, None, &xi, &cfg, v).0);
+            let full = |x: &[f64]| robust_window_prior(&jw, &win, x, None, &xi, &cfg, v).0;
+            let marginal = log_integral(&full, qq, t);
+            assert!((kept - marginal).abs() < 1e-3, "responsibility {r:.3}: collapsed {kept} vs integral {marginal}");
+            assert!((kept - l).abs() > 0.1, "the skipped frame carried some of the value: {kept} vs {l}");
+        }
+        // The last frame (a leaf once nothing hangs from it) integrates out the same way.
+        let last = *win.frames.last().unwrap();
+        let mut end = vec![false; q.len()];
+        end[last] = true;
+        let (_, _, _, _, kept) = robust_window_prior_collapsed(&jw, &win, &q, None, &xi, &cfg, v, Some(&end));
+        let full = |x: &[f64]| robust_window_prior(&jw, &win, x, None, &xi, &cfg, v).0;
+        let marginal = log_integral(&full, &q, last);
+        assert!((kept - marginal).abs() < 1e-3, "last frame: collapsed {kept} vs integral {marginal}");
+        // The first frame alone is kept; the whole window flagged integrates to 1.
+        let mut first = vec![false; q.len()];
+        first[win.frames[0]] = true;
+        let (l, _, _, _, kept) = robust_window_prior_collapsed(&jw, &win, &q, None, &xi, &cfg, v, Some(&first));
+        assert_eq!(l, kept);
+        let all = vec![true; q.len()];
+        let (_, _, _, _, kept) = robust_window_prior_collapsed(&jw, &win, &q, None, &xi, &cfg, v, Some(&all));
+        assert!(kept.abs() < 1e-12, "a window integrated out whole: {kept}");
+        // Two adjacent frames of the random walk: merged increments against a 2-D integral.
+        let mut two = vec![false; q.len()];
+        let (ta, tb) = (win.frames[5], win.frames[6]);
+        two[ta] = true;
+        two[tb] = true;
+        let (lw, _, kept) = window_random_walk(&win, &q, None, v, Some(&two));
+        let (h, half) = (0.004, 150);
+        let mut vals = Vec::new();
+        for a in -half..=half {
+            for b in -half..=half {
+                let mut x = q.clone();
+                x[ta] += a as f64 * h;
+                x[tb] += b as f64 * h;
+                vals.push(window_random_walk(&win, &x, None, v, None).0);
+            }
+        }
+        let m = vals.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+        let marginal = m + (vals.iter().map(|v| (v - m).exp()).sum::<f64>() * h * h).ln();
+        assert!((kept - marginal).abs() < 1e-3, "walk: collapsed {kept} vs integral {marginal} (full {lw})");
     }
 }
