@@ -1323,18 +1323,17 @@ fn fit_from(
                     if let (Some(kd), Some((eps, xi_kd)), Some((ld, gkd, gqd, ld_kept))) = (b.kd, &s.kd, physics) {
                         f += ld;
                         // Unseen leaves integrated out: their prior terms and their entropy.
-                        if let (Some(skip), Some((_, qs))) = (&unseen[i], b.q) {
+                        if let (Some(skip), Some((qm, qs))) = (&unseen[i], b.q) {
                             let h0 = 0.5 * (1.0 + (2.0 * std::f64::consts::PI).ln());
-                            let mut entropy: f64 = (0..k_frames).filter(|&t| skip[t]).map(|t| theta[qs + t] + h0).sum();
-                            // A window integrated out whole takes its start prior with it.
-                            let qm = b.q.map_or(0, |(qm, _)| qm);
+                            // The analytic terms that leave: the skipped coordinates' entropy and
+                            // the start prior of a window integrated out whole.
+                            let mut dropped: f64 = (0..k_frames).filter(|&t| skip[t]).map(|t| theta[qs + t] + h0).sum();
                             for f in window_starts(ev).into_iter().filter(|&f| skip[f]) {
-                                entropy += window_start_prior(theta[qm + f], theta[qs + f].exp(), model).0;
+                                dropped += window_start_prior(theta[qm + f], theta[qs + f].exp(), model).0;
                             }
-                            let collapse = ld_kept - ld - entropy;
-                            f += collapse;
+                            f += ld_kept - ld - dropped;
                             if final_left.is_some() {
-                                f_parts[i][k][1] -= pw * entropy;
+                                f_parts[i][k][1] -= pw * dropped;
                                 f_parts[i][k][2] += pw * (ld_kept - ld);
                             }
                         }

@@ -312,11 +312,10 @@ pub fn robust_window_prior_collapsed(
     (l, gx, gq, r, l_kept)
 }
 
-/// Whether window frame `k` (of `n`, grid frame `t`) is integrated out under `skip`: a frame
-/// after the first where flagged; the first only together with every other (the whole window).
-fn skipped(skip: Option<&[bool]>, k: usize, t: usize, frames: &[usize]) -> bool {
-    let flagged = |t: usize| skip.is_some_and(|s| s.get(t).copied().unwrap_or(false));
-    if k == 0 { frames.iter().all(|&f| flagged(f)) } else { flagged(t) }
+/// Whether grid frame `t` is flagged in `skip`. Only frames after a window's first carry terms of
+/// its prior, so a flagged first frame changes nothing here (a whole window flagged has no term left).
+fn skipped(skip: Option<&[bool]>, t: usize) -> bool {
+    skip.is_some_and(|s| s.get(t).copied().unwrap_or(false))
 }
 
 /// Log density of a window's coordinates after its first under a Gaussian random walk of
@@ -340,7 +339,7 @@ fn window_random_walk(win: &WindowEvidence, q: &[f64], observed: Option<&Observe
         gq[k] -= d / var;
         gq[k - 1] += d / var;
         walk_var += (v * dt).powi(2);
-        if !skipped(skip, k, b, frames) {
+        if !skipped(skip, b) {
             let a = frames[last_kept];
             let r2 = observed.map_or(0.0, |o| o.var[a] + o.var[b]);
             l_kept += term(q[b] - q[a], walk_var + r2);
@@ -510,7 +509,7 @@ fn window_prior_n<const N: usize>(
                 super::likelihood::log_student(d * d / dev2, half_log_dev2, 1, cfg.deviation_nu)
             }
         };
-        if skipped(skip, k, t, frames) {
+        if skipped(skip, t) {
             skipped_value += term.re;
         }
         ll += term;
