@@ -360,11 +360,11 @@ fn coordinate_gap(ev: &Evidence, theta: &[f64], qm: usize, qs: usize, sigma_d: f
 /// have gone, and its first once the whole window has; then the window's prior, the start prior
 /// or rest term its first frame has, and the entropy of all its coordinates leave the comparison
 /// (each such factor integrates to 1 once its children have been integrated out).
-fn unseen_leaves(ev: &Evidence, i: usize, desc: &[usize]) -> Vec<bool> {
+/// `starts` are [`window_starts`].
+fn unseen_leaves(ev: &Evidence, i: usize, desc: &[usize], starts: &[usize]) -> Vec<bool> {
     let k = ev.len();
     let unseen: Vec<bool> =
         (0..k).map(|t| std::iter::once(&i).chain(desc).all(|&m| ev.parts[m].obs[t].is_none() && ev.parts[m].rot[t].is_none())).collect();
-    let starts = window_starts(ev);
     let mut skip = vec![false; k];
     // Later windows first: a window's last frame is a leaf once the next window's first has gone.
     for w in (0..ev.windows.len()).rev() {
@@ -1187,6 +1187,8 @@ fn fit_from(
     let mut avg_count = 0usize;
     let mut avg_theta = vec![0.0f64; layout.len];
     let mut iters = 0;
+    // The windows' start frames (those with the start prior).
+    let starts = window_starts(ev);
 
     loop {
         iters += 1;
@@ -1225,7 +1227,7 @@ fn fit_from(
                         // Dynamic mode: the start of the first window and of every window that
                         // does not continue the previous one (later ones follow by continuity,
                         // the rest by the physics prior), as the density has them.
-                        for f in window_starts(ev) {
+                        for &f in &starts {
                             let (m0, s0) = (theta[qm + f], theta[qs + f].exp());
                             let (l, dm, ds) = window_start_prior(m0, s0, model);
                             a += l;
@@ -1297,16 +1299,13 @@ fn fit_from(
             let jobs: Vec<(usize, usize)> = (0..n).flat_map(|i| (0..layout.blocks[i].len()).map(move |k| (i, k))).collect();
             // Per part, the grid frames whose coordinate nothing observes on this particle's
             // tree and that are leaves of the physics prior (integrated out of the comparison).
-            let unseen: Vec<Option<Vec<bool>>> = (0..n).map(|i| (cfg.collapse_unseen && !ev.windows.is_empty()).then(|| unseen_leaves(ev, i, &descs[i]))).collect();
+            let unseen: Vec<Option<Vec<bool>>> = (0..n).map(|i| (cfg.collapse_unseen && !ev.windows.is_empty()).then(|| unseen_leaves(ev, i, &descs[i], &starts))).collect();
             let passes = cores.map(jobs.len(), |j| {
                 let (i, k) = jobs[j];
                 let (b, s) = (&layout.blocks[i][k], &samples[i][k]);
                 let pass = block_pass(ev, i, b.joint, &s.xi, &s.q, &pres[i], &subtrees[i], model);
-                let physics = (b.kd.is_some() && s.kd.is_some()).then(|| {
-                    let (l, gx, gq, kept) =
-                        physics_prior_collapsed(ev, i, &s.value(), None, &pres[i], &descs[i], &chosen, &transforms, model, true, None, unseen[i].as_deref());
-                    (l, gx, gq, kept)
-                });
+                let physics = (b.kd.is_some() && s.kd.is_some())
+                    .then(|| physics_prior_collapsed(ev, i, &s.value(), None, &pres[i], &descs[i], &chosen, &transforms, model, true, None, unseen[i].as_deref()));
                 (pass, physics)
             });
             let mut passes = passes.into_iter();
@@ -1328,7 +1327,7 @@ fn fit_from(
                             // The analytic terms that leave: the skipped coordinates' entropy and
                             // the start prior of a window integrated out whole.
                             let mut dropped: f64 = (0..k_frames).filter(|&t| skip[t]).map(|t| theta[qs + t] + h0).sum();
-                            for f in window_starts(ev).into_iter().filter(|&f| skip[f]) {
+                            for &f in starts.iter().filter(|&&f| skip[f]) {
                                 dropped += window_start_prior(theta[qm + f], theta[qs + f].exp(), model).0;
                             }
                             f += ld_kept - ld - dropped;
@@ -1842,21 +1841,21 @@ mod tests {
         };
         // Window 0: frames 0-4, rest 5-6; window 1 continues it: frames 7-11, rest 12-13.
         let ev = evidence(vec![window((0..5).collect(), vec![5, 6], false), window((7..12).collect(), vec![12, 13], true)], vec![part(&[2, 8]), part(&[9])]);
-        let skip = unseen_leaves(&ev, 0, &[]);
+        let skip = unseen_leaves(&ev, 0, &[], &window_starts(&ev));
         let flagged: Vec<usize> = (0..k).filter(|&t| skip[t]).collect();
         // 4 (window 0's last) holds window 1's first, 7, which holds 8 (seen).
         assert_eq!(flagged, vec![1, 3, 5, 6, 9, 10, 11, 12, 13], "{skip:?}");
         // Part 1 carried by part 0: frame 9 is observed through it.
-        let skip = unseen_leaves(&ev, 0, &[1]);
+        let skip = unseen_leaves(&ev, 0, &[1], &window_starts(&ev));
         assert!(!skip[9] && skip[10] && skip[11]);
         // Window 1 unseen and not continuing: it goes whole, first frame included; window 0's
         // last then goes too.
         let ev = evidence(vec![window((0..5).collect(), vec![5, 6], false), window((7..12).collect(), vec![12, 13], false)], vec![part(&[2]), part(&[])]);
-        let skip = unseen_leaves(&ev, 0, &[]);
+        let skip = unseen_leaves(&ev, 0, &[], &window_starts(&ev));
         let flagged: Vec<usize> = (0..k).filter(|&t| skip[t]).collect();
         assert_eq!(flagged, vec![1, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13], "{skip:?}");
         // Continuing but unseen: the same (its first frame hangs from window 0's last, a leaf).
         let ev = evidence(vec![window((0..5).collect(), vec![5, 6], false), window((7..12).collect(), vec![12, 13], true)], vec![part(&[2]), part(&[])]);
-        assert_eq!((0..k).filter(|&t| unseen_leaves(&ev, 0, &[])[t]).collect::<Vec<_>>(), flagged);
+        assert_eq!((0..k).filter(|&t| unseen_leaves(&ev, 0, &[], &window_starts(&ev))[t]).collect::<Vec<_>>(), flagged);
     }
 }

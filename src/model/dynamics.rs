@@ -220,8 +220,6 @@ pub struct JointInWindow<'a> {
 /// give `y_t ~ N(Psi_t, sigma_d^2 + r_t^2)`, taken Student-t with `observed.nu` degrees of freedom
 /// as positions are (eq. 2, with the perception's bursts), over the frames with `r_t^2 > 0`.
 pub fn window_prior(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64], observed: Option<&Observed>, xi: &[f64], cfg: &DynamicsConfig) -> (f64, Vec<f64>, Vec<f64>) {
-    // Dual numbers as wide as the parameters plus `q_{w,0}`: the base model's 4 + 1 are the
-    // common case and the cheapest.
     let (l, gx, gq, _) = window_prior_split(jw, win, q, observed, xi, cfg, None);
     (l, gx, gq)
 }
@@ -229,6 +227,8 @@ pub fn window_prior(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64], obs
 /// [`window_prior`] and, fourth, its value over the frames not flagged in `skip` (see
 /// [`robust_window_prior_collapsed`]).
 pub fn window_prior_split(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64], observed: Option<&Observed>, xi: &[f64], cfg: &DynamicsConfig, skip: Option<&[bool]>) -> (f64, Vec<f64>, Vec<f64>, f64) {
+    // Dual numbers as wide as the parameters plus `q_{w,0}`: the base model's 4 + 1 are the
+    // common case and the cheapest.
     match xi.len() {
         0..=4 => window_prior_n::<5>(jw, win, q, observed, xi, cfg, skip),
         5..=6 => window_prior_n::<7>(jw, win, q, observed, xi, cfg, skip),
@@ -339,14 +339,15 @@ fn window_random_walk(win: &WindowEvidence, q: &[f64], observed: Option<&Observe
         gq[k] -= d / var;
         gq[k - 1] += d / var;
         walk_var += (v * dt).powi(2);
-        if !skipped(skip, b) {
+        if skip.is_some() && !skipped(skip, b) {
             let a = frames[last_kept];
             let r2 = observed.map_or(0.0, |o| o.var[a] + o.var[b]);
             l_kept += term(q[b] - q[a], walk_var + r2);
             (last_kept, walk_var) = (k, 0.0);
         }
     }
-    (l, gq, l_kept)
+    // Nothing skipped: every increment kept as it is.
+    (l, gq, if skip.is_some() { l_kept } else { l })
 }
 
 /// The simulated trajectory of one joint in one window, in metres of path at every integration
