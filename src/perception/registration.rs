@@ -146,6 +146,14 @@ impl std::fmt::Debug for PartModel {
 }
 
 impl PartModel {
+    /// The diagonal of the model points' axis-aligned bounding box in the reference frame \[m\]
+    /// (0 for an empty model): the part's size, by which a carrier is told from what it carries.
+    pub fn extent(&self) -> f64 {
+        let Some(first) = self.points.first() else { return 0.0 };
+        let (lo, hi) = self.points.iter().fold((*first, *first), |(lo, hi), p| (lo.inf(p), hi.sup(p)));
+        (hi - lo).norm()
+    }
+
     /// A model from a first set of points (already free of strays, fixed frame \[m\]), one point
     /// per voxel of size `voxel` \[m\].
     pub fn new(points: &[Vector3<f64>], voxel: f64, smoothing: Smoothing) -> PartModel {
@@ -633,9 +641,12 @@ impl Tracker {
     }
 
     /// Register a frame, choose among the hypotheses (a moved pose costs `move_penalty`
-    /// under `push`, the push acting on the part if any), grow the model. `None` when no
+    /// under `push`, the push acting on the part if any), grow the model. `starts` are further
+    /// poses (reference -> fixed frame) beside the tracker's own: the part moved with a larger
+    /// one ([`super::PerceptionConfig::carrier_starts`]), each a hypothesis at no move penalty
+    /// and an ICP start. `None` when no
     /// hypothesis matches enough points (the pose is then kept).
-    pub fn update(&mut self, frame: &FramePoints<'_>, push: Option<&super::Push>, cfg: &PerceptionConfig) -> Option<Registered> {
+    pub fn update(&mut self, frame: &FramePoints<'_>, push: Option<&super::Push>, starts: &[Isometry3<f64>], cfg: &PerceptionConfig) -> Option<Registered> {
         let frame_index = self.frames;
         self.frames += 1;
         // Constant-velocity prediction: the last motion applied once more; and the previous pose
@@ -644,12 +655,22 @@ impl Tracker {
         let predicted = self.pose * (self.previous.inverse() * self.pose);
         let mut hyps: Vec<(Isometry3<f64>, f64)> = vec![(self.pose, 0.0), (Isometry3::identity(), cfg.reference_penalty_nats)];
         let centroid = frame.points.iter().sum::<Vector3<f64>>() / frame.points.len().max(1) as f64;
-        let shifted = Translation3::from(centroid - self.centroid.unwrap_or(centroid)) * self.pose;
+        let last = self.centroid.unwrap_or(centroid);
+        let shifted = Translation3::from(centroid - last) * self.pose;
+        // A further start as it is: the part rigid on its carrier, which, like staying where it
+        // was, is no motion of its own and pays no move penalty.
+        hyps.extend(starts.iter().map(|s| (*s, 0.0)));
+        // Each further start also an ICP start, and shifted so that the last frame's centroid,
+        // carried along with it, lands on this frame's (a hatch that slid in its door while out
+        // of view).
+        let last_ref = self.pose.inverse() * nalgebra::Point3::from(last);
+        let starts: Vec<Isometry3<f64>> =
+            starts.iter().flat_map(|s| [*s, Translation3::from(centroid - (s * last_ref).coords) * s]).collect();
         self.centroid = Some(centroid);
         let mut info = None;
         let mut nn = Correspondences::new(&self.model, frame.points.len());
-        for start in [self.pose, predicted, shifted] {
-            if let Some((p, a)) = icp(&mut nn, frame, &start, self.scales, cfg) {
+        for start in [self.pose, predicted, shifted].iter().chain(&starts) {
+            if let Some((p, a)) = icp(&mut nn, frame, start, self.scales, cfg) {
                 if info.is_none() {
                     // The noise of this frame's points, from the residuals of the first fit.
                     if let Some(s) = residual_scale(&mut nn, frame, &p, cfg) {
@@ -835,7 +856,7 @@ mod tests {
             let truth = Isometry3::from_parts(Translation3::from(hinge - rot * hinge), rot);
             let pts = sample(&mut rng, &truth);
             let w = vec![1.0; pts.len()];
-            let reg = tr.update(&FramePoints { points: &pts, weights: &w }, None, &cfg).expect("registers");
+            let reg = tr.update(&FramePoints { points: &pts, weights: &w }, None, &[], &cfg).expect("registers");
             let err = (reg.pose * nalgebra::Point3::from(centre) - truth * nalgebra::Point3::from(centre)).norm();
             worst = worst.max(err);
             if k < 10 {
@@ -869,7 +890,7 @@ mod tests {
                 // The hand on the box's -x face, pushing with 5 N.
                 let contact = truth * nalgebra::Point3::from(centre - Vector3::new(size.x / 2.0, 0.0, 0.0));
                 let push = push_along.map(|d| super::super::Push { point: contact, force: d * 5.0 });
-                let reg = tr.update(&FramePoints { points: &pts, weights: &w }, push.as_ref(), &cfg).expect("registers");
+                let reg = tr.update(&FramePoints { points: &pts, weights: &w }, push.as_ref(), &[], &cfg).expect("registers");
                 lag += (truth * nalgebra::Point3::from(centre) - reg.pose * nalgebra::Point3::from(centre)).x / 60.0;
             }
             lag
