@@ -50,16 +50,16 @@ def registered(bom, bag, config):
     return out
 
 
-def joint_name(entry, part):
-    """The recorder's name of a part's joint (`<part>_hinge` / `<part>_slide` in procedural objects;
-    `<part>` or `<part>_joint` in the shipped models), or None."""
-    names = [part["name"] + ("_hinge" if part["joint"] == "revolute" else "_slide"), part["name"], part["name"] + "_joint"]
-    for n in names:
+def true_turn(entry, part):
+    """The part's joint position per stamp, {stamp: q}, from the recorder re-run: its joint is
+    `<part>_hinge` in procedural objects, `<part>` or `<part>_joint` in the shipped models. None
+    when no such joint exists."""
+    for name in (part["name"] + "_hinge", part["name"], part["name"] + "_joint"):
         try:
-            true_track.joint_tracks(entry, [n])
-            return n
+            (track,), _ = true_track.joint_tracks(entry, [name])
         except KeyError:
             continue
+        return {round(t, 3): q for t, q in track}
     return None
 
 
@@ -84,12 +84,10 @@ def main(argv=None):
         for p in nested:
             truth = None
             if p["joint"] == "revolute":
-                name = joint_name(o, p)
-                if name is None:
+                truth = true_turn(o, p)
+                if truth is None:
                     print(f"{o['name']} part {p['label']}: no joint found for {p['name']}")
                     continue
-                (track,), _ = true_track.joint_tracks(o, [name])
-                truth = {round(t, 3): q for t, q in track}
             parent, child = reg.get(p["parent"], {}), reg.get(p["label"], {})
             stamps = [t for t in sorted(set(parent) & set(child)) if truth is None or t in truth]
             if not stamps:

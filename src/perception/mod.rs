@@ -270,7 +270,7 @@ impl Perception {
     /// larger part as that part moved since the part's own last registration, this cloud's
     /// registration of the larger part included ([`carrier_starts`]).
     fn observe_split(&mut self, stamp: f64, mut parts: Vec<SplitPart>) -> Vec<(u32, PartObservation)> {
-        let cfg = self.config.clone();
+        let cfg = &self.config;
         let mut extents = BTreeMap::new();
         if cfg.carrier_starts {
             extents = self.parts.iter().map(|(l, s)| (*l, s.tracker.model.extent())).collect();
@@ -283,9 +283,9 @@ impl Perception {
         let mut out = Vec::new();
         for part in parts {
             let label = part.label;
-            let starts = carrier_starts(&self.parts, &extents, label, stamp, &cfg);
+            let starts = carrier_starts(&self.parts, &extents, label, stamp, cfg);
             let state = self.parts.remove(&label);
-            let (state, obs) = observe_part(state, stamp, part, &starts, &cfg, self.frame_limit);
+            let (state, obs) = observe_part(state, stamp, part, &starts, cfg, self.frame_limit);
             self.parts.insert(label, state);
             out.extend(obs.map(|o| (label, o)));
         }
