@@ -300,15 +300,25 @@ impl Perception {
     /// [`carrier_starts`](PerceptionConfig::carrier_starts), the parts registered cloud after
     /// cloud (a part's starts read the larger parts' registrations of the same cloud).
     pub fn observe_all(&mut self, clouds: &[CloudFrame], pushes: &[Option<Push>]) -> PartTracks {
+        let split: Vec<Vec<SplitPart>> = {
+            let cfg = &self.config;
+            parallel::map(parallel::resolve_threads(0), clouds.len(), |j| {
+                let mut parts = split_parts(&clouds[j], cfg);
+                mark_pushed(&mut parts, &clouds[j], pushes.get(j).and_then(|c| c.as_ref()), cfg);
+                parts
+            })
+        };
+        let mut tracks = PartTracks::new();
         if self.config.carrier_starts {
-            return self.observe_all_lockstep(clouds, pushes);
+            for (c, parts) in clouds.iter().zip(split) {
+                for (label, o) in self.observe_split(c.stamp, parts) {
+                    tracks.entry(label).or_default().push(o);
+                }
+            }
+            self.refine(&mut tracks);
+            return tracks;
         }
         let cfg = &self.config;
-        let split: Vec<Vec<SplitPart>> = parallel::map(parallel::resolve_threads(0), clouds.len(), |j| {
-            let mut parts = split_parts(&clouds[j], cfg);
-            mark_pushed(&mut parts, &clouds[j], pushes.get(j).and_then(|c| c.as_ref()), cfg);
-            parts
-        });
         // Every part's frames in time order.
         let mut per_part: BTreeMap<u32, Vec<(f64, SplitPart)>> = BTreeMap::new();
         for (c, parts) in clouds.iter().zip(split) {
@@ -335,32 +345,12 @@ impl Perception {
                 .collect();
             jobs.into_iter().map(|j| j.join().unwrap_or_else(|e| std::panic::resume_unwind(e))).collect()
         });
-        let mut tracks = PartTracks::new();
         for (label, state, track) in tracked {
             if let Some(state) = state {
                 self.parts.insert(label, state);
             }
             if !track.is_empty() {
                 tracks.insert(label, track);
-            }
-        }
-        self.refine(&mut tracks);
-        tracks
-    }
-
-    /// [`observe_all`](Self::observe_all) cloud by cloud ([`observe_split`](Self::observe_split)):
-    /// a part's starts read the larger parts' registrations of the same cloud.
-    fn observe_all_lockstep(&mut self, clouds: &[CloudFrame], pushes: &[Option<Push>]) -> PartTracks {
-        let cfg = self.config.clone();
-        let split: Vec<Vec<SplitPart>> = parallel::map(parallel::resolve_threads(0), clouds.len(), |j| {
-            let mut parts = split_parts(&clouds[j], &cfg);
-            mark_pushed(&mut parts, &clouds[j], pushes.get(j).and_then(|c| c.as_ref()), &cfg);
-            parts
-        });
-        let mut tracks = PartTracks::new();
-        for (c, parts) in clouds.iter().zip(split) {
-            for (label, o) in self.observe_split(c.stamp, parts) {
-                tracks.entry(label).or_default().push(o);
             }
         }
         self.refine(&mut tracks);

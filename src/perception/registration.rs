@@ -644,8 +644,7 @@ impl Tracker {
     /// under `push`, the push acting on the part if any), grow the model. `starts` are further
     /// poses (reference -> fixed frame) beside the tracker's own: the part moved with a larger
     /// one ([`super::PerceptionConfig::carrier_starts`]), each a hypothesis at no move penalty
-    /// and an ICP start. `None` when no
-    /// hypothesis matches enough points (the pose is then kept).
+    /// and an ICP start. `None` when no hypothesis matches enough points (the pose is then kept).
     pub fn update(&mut self, frame: &FramePoints<'_>, push: Option<&super::Push>, starts: &[Isometry3<f64>], cfg: &PerceptionConfig) -> Option<Registered> {
         let frame_index = self.frames;
         self.frames += 1;
