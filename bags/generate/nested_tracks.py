@@ -8,7 +8,10 @@ into view, shows here as clouds off by more than 0.1 rad.
         --bom target/release/bom [--config FILE] [--only obj045_procedural,...]
 
 Prints one line per nested part: clouds compared, clouds off by more than 0.1 rad, the largest
-and the median error. The true turn comes from the recorder re-run (`true_track.joint_tracks`);
+and the median error. With `--timeline N`, also every N-th cloud compared and every cloud off by
+more than 0.1 rad: its stamp, the parent's registered rotation, the error and the axis of the
+part's rotation relative to its parent (in the parent's reference frame; a nested part lagging
+its door's swing turns about the door's hinge). The true turn comes from the recorder re-run (`true_track.joint_tracks`);
 the registered poses from `BOM_LOG=info,bom::perception=trace bom replay`.
 """
 import argparse
@@ -63,6 +66,13 @@ def true_turn(entry, part):
     return None
 
 
+def axis_of(r):
+    """The unit axis of rotation matrix `r` (any unit vector for the identity)."""
+    w = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    n = np.linalg.norm(w)
+    return w / n if n > 1e-12 else np.array([1.0, 0.0, 0.0])
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--corpus", required=True)
@@ -70,6 +80,7 @@ def main(argv=None):
     ap.add_argument("--bom", required=True)
     ap.add_argument("--config")
     ap.add_argument("--only", help="comma-separated object names")
+    ap.add_argument("--timeline", type=int, default=0, metavar="N", help="also print every N-th cloud compared (0: none)")
     args = ap.parse_args(argv)
     only = set(args.only.split(",")) if args.only else None
     manifest = json.loads((Path(args.corpus) / "manifest.json").read_text())
@@ -97,6 +108,12 @@ def main(argv=None):
             r0 = (parent[stamps[0]].T @ child[stamps[0]]).T
             q0 = truth[stamps[0]] if truth else 0.0
             errs = np.array([abs(angle(r0 @ parent[t].T @ child[t]) - (abs(truth[t] - q0) if truth else 0.0)) for t in stamps])
+            if args.timeline > 0:
+                for k, t in enumerate(stamps):
+                    if k % args.timeline == 0 or errs[k] > 0.1:
+                        a = axis_of(r0 @ parent[t].T @ child[t])
+                        print(f"  {t:8.3f} s  parent turned {angle(parent[t]):.3f} rad  error {errs[k]:.3f} rad  "
+                              f"relative axis [{a[0]:+.2f}, {a[1]:+.2f}, {a[2]:+.2f}]")
             off = int((errs > 0.1).sum())
             print(f"{o['name']:28s} part {p['label']} {p['name']:8s} {p['joint']:9s} on {p['parent']}: {len(stamps)} clouds, "
                   f"{off} off by > 0.1 rad ({off / len(stamps):.0%}), largest {errs.max():.2f} rad, median {np.median(errs):.3f}", flush=True)
