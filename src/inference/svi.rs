@@ -299,7 +299,8 @@ fn sample_block(ev: &Evidence, i: usize, b: &Block, theta: &[f64], model: &Model
 /// correlations, at deviation scale `sigma_d` \[m of path\]. The prior's precision is that of
 /// [`physics_prior`] taken linear and Gaussian: every window frame after the first tied to the
 /// first (`Psi_t` moves with `q_{w,0}` one for one, its Student-t by its Fisher information
-/// `(nu + 1) / ((nu + 3) sigma_d^2)`), every rest frame to the window frame it rests at, a window
+/// `(nu + 1) / ((nu + 3) sigma_d^2)`), every rest frame to the window frame it rests at (with
+/// `rest_nu`'s information), a window
 /// that continues the previous one to that one's last frame, the window starts by
 /// [`window_start_prior`]'s curvature.
 ///
@@ -318,7 +319,9 @@ fn coordinate_gap(ev: &Evidence, theta: &[f64], qm: usize, qs: usize, sigma_d: f
     }
     let nu = model.dynamics.deviation_nu;
     let w_dev = if nu > 0.0 { (nu + 1.0) / (nu + 3.0) } else { 1.0 } / (sigma_d * sigma_d);
-    let w_rest = 1.0 / (sigma_d * sigma_d);
+    // The rests' Fisher information, Student-t with `rest_nu` (`density::physics_prior_collapsed`).
+    let rest_nu = model.dynamics.rest_nu;
+    let w_rest = if rest_nu > 0.0 { (rest_nu + 1.0) / (rest_nu + 3.0) } else { 1.0 } / (sigma_d * sigma_d);
     let mut edges = Vec::new();
     for (w, win) in ev.windows.iter().enumerate() {
         let Some((&f0, rest_of)) = win.frames.split_first() else { continue };

@@ -56,6 +56,13 @@ pub struct DynamicsConfig {
     /// a few frames the physics cannot explain (a latch's contact, a sampled mass far too small)
     /// from dominating the fit and its gradient.
     pub deviation_nu: f64,
+    /// Student-t degrees of freedom of a resting joint's deviation (rest frames before and after
+    /// a window, and between the windows of one recording; 0: Gaussian, the default). With
+    /// `deviation_nu` here, one frame in which a joint the model says rests moves anyway (a door
+    /// falling shut under a gravity the base model lacks) costs logarithmically, as every other
+    /// deviation does; Gaussian, it costs `d^2 / 2 sigma_d^2` without bound. Measured on `tune`
+    /// and left off: README "Generalization", stop 86.
+    pub rest_nu: f64,
     /// Model discrepancy of the reported damping, friction and mass: a log-sd added in quadrature
     /// to the posterior's (0: none). The physics engine is not the world — here MuJoCo's soft
     /// constraints against our regularised Coulomb law and locked subtrees — so the parameters
@@ -90,6 +97,7 @@ impl Default for DynamicsConfig {
             deviation_median_m: 0.005,
             deviation_log_sd: 1.0,
             deviation_nu: 4.0,
+            rest_nu: 0.0,
             discrepancy_log_sd: 0.1,
             window_outlier_prob: 0.1,
             effects: EffectsConfig::default(),
@@ -462,7 +470,7 @@ pub struct Observed {
 
 /// `d/dd log p(d)` of a one-dimensional Student-t with scale² `var` and `nu` degrees of freedom
 /// (Gaussian when `nu` is 0 or infinite).
-fn student_score(d: f64, var: f64, nu: f64) -> f64 {
+pub(crate) fn student_score(d: f64, var: f64, nu: f64) -> f64 {
     if nu.is_finite() && nu > 0.0 {
         -(nu + 1.0) * d / (nu * var + d * d)
     } else {
