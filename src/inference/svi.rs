@@ -321,7 +321,7 @@ fn coordinate_gap(ev: &Evidence, theta: &[f64], qm: usize, qs: usize, sigma_d: f
     let w_dev = if nu > 0.0 { (nu + 1.0) / (nu + 3.0) } else { 1.0 } / (sigma_d * sigma_d);
     // The rests' Fisher information, Student-t with `rest_nu` (`density::physics_prior_collapsed`).
     let rest_nu = model.dynamics.rest_nu;
-    let w_rest = if rest_nu > 0.0 { (rest_nu + 1.0) / (rest_nu + 3.0) } else { 1.0 } / (sigma_d * sigma_d);
+    let w_rest = if rest_nu.is_finite() && rest_nu > 0.0 { (rest_nu + 1.0) / (rest_nu + 3.0) } else { 1.0 } / (sigma_d * sigma_d);
     let mut edges = Vec::new();
     for (w, win) in ev.windows.iter().enumerate() {
         let Some((&f0, rest_of)) = win.frames.split_first() else { continue };

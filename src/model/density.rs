@@ -917,10 +917,10 @@ impl<'a> NonCentred<'a> {
 mod tests {
     use super::*;
 
-    /// A rest frame is Student-t like every other deviation of the physics: a door that the model
-    /// says rests but that falls 9 mm (an effect the base model lacks) costs a few tens of nats at
-    /// a collapsed 10 um deviation scale, where the Gaussian (`nu` 0) cost ~4e5; a still joint
-    /// is still the more probable.
+    /// With `rest_nu`, a rest frame is Student-t like every other deviation of the physics: a door
+    /// that the model says rests but that falls 9 mm (an effect the base model lacks) costs a few
+    /// tens of nats at a collapsed 10 um deviation scale, where the Gaussian (`rest_nu` 0, the
+    /// default) costs ~4e5; a still joint is still the more probable.
     #[test]
     fn a_joint_moving_where_it_should_rest_costs_logarithmically() {
         let sd = 1e-5;
