@@ -11,8 +11,9 @@ Prints one line per nested part: clouds compared, clouds off by more than 0.1 ra
 and the median error. With `--timeline N`, also every N-th cloud compared and every cloud off by
 more than 0.1 rad: its stamp, the parent's registered rotation, the error and the axis of the
 part's rotation relative to its parent (in the parent's reference frame; a nested part lagging
-its door's swing turns about the door's hinge). The true turn comes from the recorder re-run (`true_track.joint_tracks`);
-the registered poses from `BOM_LOG=info,bom::perception=trace bom replay`.
+its door's swing turns about the door's hinge). The true turn comes from the recorder re-run
+(`true_track.joint_tracks`); the registered poses from `BOM_LOG=info,bom::perception=trace bom
+replay`.
 """
 import argparse
 import json
@@ -107,11 +108,12 @@ def main(argv=None):
             # Relative rotations from the first cloud that shows both (the references may differ).
             r0 = (parent[stamps[0]].T @ child[stamps[0]]).T
             q0 = truth[stamps[0]] if truth else 0.0
-            errs = np.array([abs(angle(r0 @ parent[t].T @ child[t]) - (abs(truth[t] - q0) if truth else 0.0)) for t in stamps])
+            rel = [r0 @ parent[t].T @ child[t] for t in stamps]
+            errs = np.array([abs(angle(r) - (abs(truth[t] - q0) if truth else 0.0)) for r, t in zip(rel, stamps)])
             if args.timeline > 0:
                 for k, t in enumerate(stamps):
                     if k % args.timeline == 0 or errs[k] > 0.1:
-                        a = axis_of(r0 @ parent[t].T @ child[t])
+                        a = axis_of(rel[k])
                         print(f"  {t:8.3f} s  parent turned {angle(parent[t]):.3f} rad  error {errs[k]:.3f} rad  "
                               f"relative axis [{a[0]:+.2f}, {a[1]:+.2f}, {a[2]:+.2f}]")
             off = int((errs > 0.1).sum())

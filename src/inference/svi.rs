@@ -317,11 +317,11 @@ fn coordinate_gap(ev: &Evidence, theta: &[f64], qm: usize, qs: usize, sigma_d: f
     if k == 0 || !(sigma_d > 0.0) {
         return 0.0;
     }
-    let nu = model.dynamics.deviation_nu;
-    let w_dev = if nu > 0.0 { (nu + 1.0) / (nu + 3.0) } else { 1.0 } / (sigma_d * sigma_d);
-    // The rests' Fisher information, Student-t with `rest_nu` (`density::physics_prior_collapsed`).
-    let rest_nu = model.dynamics.rest_nu;
-    let w_rest = if rest_nu.is_finite() && rest_nu > 0.0 { (rest_nu + 1.0) / (rest_nu + 3.0) } else { 1.0 } / (sigma_d * sigma_d);
+    // A Student-t's Fisher information about its location (Gaussian for `nu` 0 or infinite): the
+    // window frames' with `deviation_nu`, the rests' with `rest_nu` (`density::physics_prior_collapsed`).
+    let information = |nu: f64| if nu.is_finite() && nu > 0.0 { (nu + 1.0) / (nu + 3.0) } else { 1.0 } / (sigma_d * sigma_d);
+    let w_dev = information(model.dynamics.deviation_nu);
+    let w_rest = information(model.dynamics.rest_nu);
     let mut edges = Vec::new();
     for (w, win) in ev.windows.iter().enumerate() {
         let Some((&f0, rest_of)) = win.frames.split_first() else { continue };

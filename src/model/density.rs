@@ -361,6 +361,8 @@ fn rest_term(q: &[f64], a: usize, b: usize, sd: f64, cfg: &dynamics::DynamicsCon
     let (nu, deviation_log_sd) = (cfg.rest_nu, cfg.deviation_log_sd);
     let d = q[b] - q[a];
     if !(nu.is_finite() && nu > 0.0) {
+        // The Gaussian as before `rest_nu`, term for term, so that the default's fits stay
+        // identical to the last bit (`log_student`'s Gaussian rounds differently).
         gq[b] -= d / (sd * sd);
         gq[a] += d / (sd * sd);
         *g_dev += (d * d / (sd * sd) - 1.0) * deviation_log_sd;
