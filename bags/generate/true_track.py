@@ -12,7 +12,9 @@ BAG`, L: the part's label) it prints instead how far perception's registered tra
 from the joint's true motion since the first cloud: for a hinge the registered rotation angle
 against the true turn, for a slide the anchor's displacement along its largest displacement
 against the true travel (RMS and largest error over the clouds in both, and the last cloud's
-values).
+values). `--series` adds one line per cloud before the summary: stamp, true motion, registered
+motion, their difference, and the registered rotation angle (for a slide, a rotation the joint
+does not have).
 """
 import argparse
 import contextlib
@@ -36,6 +38,7 @@ def main(argv=None):
     ap.add_argument("joint")
     ap.add_argument("--trace", help="stderr of `BOM_LOG=info,bom::perception=trace bom replay BAG`")
     ap.add_argument("--label", type=int, help="the part whose registered track --trace compares")
+    ap.add_argument("--series", action="store_true", help="with --trace: also print every cloud's values")
     args = ap.parse_args(argv)
     if (args.trace is None) != (args.label is None):
         sys.exit("error: --trace and --label go together")
@@ -50,7 +53,7 @@ def main(argv=None):
         for t, q in track:
             print(f"{t:.3f} {q:.6f}")
         return
-    compare(track, registered(args.trace, args.label), hinge[0])
+    compare(track, registered(args.trace, args.label), hinge[0], args.series)
 
 
 def joint_tracks(entry, joints):
@@ -95,7 +98,7 @@ def registered(path, label):
     return out
 
 
-def compare(track, reg, hinge):
+def compare(track, reg, hinge, series=False):
     truth = dict(track)
     stamps = [t for t in sorted(reg) if t in truth]
     if not stamps:
@@ -111,6 +114,10 @@ def compare(track, reg, hinge):
         pairs = [(a, abs(truth[t] - q0)) for a, t in zip(along, stamps)]
         unit = "m"
     err = [a - b for a, b in pairs]
+    if series:
+        print(f"# stamp [s], true, registered, registered - true [{unit}], registered rotation [rad]")
+        for t, (a, b), e in zip(stamps, pairs, err):
+            print(f"{t:.3f} {b:+.4f} {a:+.4f} {e:+.4f} {reg[t][0]:.3f}")
     rms = math.sqrt(sum(e * e for e in err) / len(err))
     print(f"{len(err)} clouds: registered - true RMS {rms:.4f} {unit}, largest {max(map(abs, err)):.4f} {unit}; "
           f"last cloud registered {pairs[-1][0]:.4f}, true {pairs[-1][1]:.4f} {unit}")
