@@ -157,6 +157,92 @@ fn nested_revolute_gradient_matches_finite_differences() {
     assert!(bad.is_empty(), "gradient vs central differences (index, gradient, fd): {bad:?}");
 }
 
+/// In dynamic mode the physics prior's gradient in every part's own axis and centre of mass comes
+/// from the dual numbers of one simulation, and what one part's parameters do to another's physics
+/// from forward differences (`density::cross_physics_differences`). Checked against central
+/// differences of the value (tighter than [`mismatches`]: relative 1e-4, at least 0.5), every
+/// parameter (and, where no joint is nested, coordinates), on
+/// - `obj075` with its true tree: a lid (revolute) on a drawer (prismatic) in a cabinet, so the
+///   drawer's axis moves the lid's hinge and the lid's mass loads the drawer;
+/// - the same tree with a revolute drawer (a door carrying a hinged lid), so the lid's centre of
+///   mass and axis load its parent's inertia;
+/// - `microwave_spring`, a door, with every effect declared on every movable part (spring, both
+///   stops, gravity, quadratic damping), so the radius scales the effects' positions.
+#[test]
+fn dynamic_physics_gradient_matches_finite_differences() {
+    let tight = |f: &dyn Fn(&[f64], &mut [f64]) -> f64, x: &[f64], g: &[f64], dims: &[usize]| -> Vec<(usize, f64, f64)> {
+        let mut scratch = vec![0.0; x.len()];
+        dims.iter()
+            .filter_map(|&k| {
+                let h = 1e-6;
+                let (mut a, mut b) = (x.to_vec(), x.to_vec());
+                a[k] += h;
+                b[k] -= h;
+                let fd = (f(&a, &mut scratch) - f(&b, &mut scratch)) / (2.0 * h);
+                ((fd - g[k]).abs() > 1e-4 * fd.abs().max(g[k].abs()).max(5e3)).then_some((k, g[k], fd))
+            })
+            .collect()
+    };
+    let cfg = Config::new();
+    let run = bom::pipeline::replay(&[PathBuf::from("bags/corpus/obj075_procedural.mcap")], &cfg).expect("replay");
+    let ev = bom::pipeline::final_evidence(&run, &cfg);
+    assert!(!ev.windows.is_empty(), "dynamic mode");
+    let fitted = svi::fit(&ev, &cfg.model, &cfg.inference, None).expect("a fit");
+    let label = |l: u32| ev.parts.iter().position(|p| p.label == l).expect("part");
+    let (cabinet, drawer, lid) = (label(1), label(2), label(3));
+    for drawer_type in [bom::model::JointType::Prismatic, bom::model::JointType::Revolute] {
+        let mut structure = map_structure(&fitted);
+        structure.parent[cabinet] = 0;
+        structure.types[cabinet] = bom::model::JointType::Rigid;
+        structure.parent[drawer] = cabinet + 1;
+        structure.types[drawer] = drawer_type;
+        structure.parent[lid] = drawer + 1;
+        structure.types[lid] = bom::model::JointType::Revolute;
+        let density = Density::new(&ev, &cfg.model, structure);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(21);
+        let x = nuts::start_from_guide(&density, &fitted.guide, &mut rng);
+        let mut g = vec![0.0; density.dim()];
+        assert!(density.log_density(&x, &mut g).is_finite());
+        // Every parameter; not the coordinates, whose effect on another part's physics (a
+        // parent's coordinate moving its child's hinge) the gradient leaves out by design
+        // (`model::density`'s docs).
+        let dims: Vec<usize> = density.slots().iter().flat_map(|s| (s.xi..s.xi + s.np).chain(s.kd.map_or(0..0, |(k, d)| k..k + d))).collect();
+        let bad = tight(&|v, gr| density.log_density(v, gr), &x, &g, &dims);
+        assert!(bad.is_empty(), "obj075, drawer {drawer_type:?}: gradient vs central differences (index, gradient, fd): {bad:?}");
+    }
+    let run = bom::pipeline::replay(&[PathBuf::from("bags/mujoco/microwave_spring.mcap")], &cfg).expect("replay");
+    let mut ev = bom::pipeline::final_evidence(&run, &cfg);
+    let fitted = svi::fit(&ev, &cfg.model, &cfg.inference, None).expect("a fit");
+    let structure = map_structure(&fitted);
+    assert!(structure.types.contains(&bom::model::JointType::Revolute), "the door is revolute");
+    for (i, t) in structure.types.iter().enumerate() {
+        if t.movable() {
+            ev.effects[i] = bom::model::effects::EffectSet {
+                spring: true,
+                limit: Some(bom::model::effects::LimitSpec { lower: Some(-0.02), upper: Some(0.3) }),
+                gravity: true,
+                quadratic_damping: true,
+            };
+        }
+    }
+    let density = Density::new(&ev, &cfg.model, structure);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(22);
+    let mut x = nuts::start_from_guide(&density, &fitted.guide, &mut rng);
+    // The effects' parameters, absent from the guide: small values off their medians.
+    for s in density.slots() {
+        if let Some((k, d)) = s.kd {
+            for j in 4..d {
+                x[k + j] = 0.1 * ((j as f64) * 1.3).sin();
+            }
+        }
+    }
+    let mut g = vec![0.0; density.dim()];
+    assert!(density.log_density(&x, &mut g).is_finite());
+    let dims = checked_dims(&density, &ev, true);
+    let bad = tight(&|v, gr| density.log_density(v, gr), &x, &g, &dims);
+    assert!(bad.is_empty(), "microwave_spring, every effect: gradient vs central differences (index, gradient, fd): {bad:?}");
+}
+
 /// BOM-NUTS on the structure SVI found, through the same density: its draws keep SVI's
 /// prismatic axis (within 3 degrees) and report finite diagnostics; the structures it sampled
 /// start with SVI's most probable one.

@@ -22,11 +22,13 @@
 //! parameters (decoding to physical units is part of the model, not a change of variables), and
 //! coordinates are metres of path, so no Jacobian enters. [`Density::log_density`] is exact; its
 //! gradient is exact for the likelihood and the coordinate priors (dual numbers through the model
-//! code) and takes the physics prior's dependence on the kinematic parameters (axis, centre of
-//! mass; a parent's axis moving a child's joint) and on a child's kinodynamics (its mass) by
-//! forward differences — the physics code's dual numbers carry only a part's own kinodynamics and
-//! coordinates. Left out: a nested joint's physics through its parent's or children's
-//! *coordinates*. A gradient that is not exactly the density's keeps Hamiltonian Monte Carlo exact
+//! code) and for each part's own physics prior — its kinodynamics, coordinates and own kinematic
+//! parameters (axis, centre of mass) seeded in the same dual numbers, one simulation a window
+//! ([`physics_prior_kinematic`]). What one part's parameters do to another part's physics (a
+//! parent's axis moving a child's joint, a child's mass and centre of mass loading its parent)
+//! is taken by forward differences of that part's value ([`cross_physics_differences`]). Left
+//! out: a nested joint's physics through its parent's or children's *coordinates*. A gradient
+//! that is not exactly the density's keeps Hamiltonian Monte Carlo exact
 //! (leapfrog steps stay volume-preserving and reversible, and acceptance uses the exact
 //! density) and only costs it step size.
 //! SVI's conditional ELBOs are expectations of the same terms under its guide
@@ -40,9 +42,6 @@ use crate::model::effects::EffectSet;
 use crate::model::likelihood::{coordinate_prior, log_likelihood_position, log_likelihood_rotation, window_start_prior, Evidence, WindowEvidence};
 use crate::model::{decode, displacement, mat_mul, tree, Displacement, JointParams, JointType, ModelConfig};
 
-/// Dual number with enough directions for the largest joint (11 parameters) plus one coordinate.
-type D = DualSVec64<12>;
-const Q_SLOT: usize = crate::model::revolute::NUM_PARAMS;
 
 /// One part's values: decoded kinematic parameters, joint coordinates on the evidence grid
 /// \[m of path; zeros for a rigid joint\], and standardised kinodynamic parameters (dynamic mode,
@@ -120,8 +119,32 @@ pub fn block_pass(
     subtree: &[Member],
     cfg: &ModelConfig,
 ) -> (f64, Vec<f64>, Vec<f64>) {
+    // Dual numbers as wide as the joint's parameters plus its coordinate (a prismatic joint's 9,
+    // a rigid one's 6: the widest, a revolute joint's 12, cost twice as much per operation).
+    match joint {
+        JointType::Rigid => block_pass_n::<{ crate::model::rigid::NUM_PARAMS + 1 }>(ev, i, joint, xi, q, pre, subtree, cfg),
+        JointType::Prismatic => block_pass_n::<{ crate::model::prismatic::NUM_PARAMS + 1 }>(ev, i, joint, xi, q, pre, subtree, cfg),
+        JointType::Revolute => block_pass_n::<{ crate::model::revolute::NUM_PARAMS + 1 }>(ev, i, joint, xi, q, pre, subtree, cfg),
+    }
+}
+
+/// [`block_pass`] with `N` dual directions: the joint's parameters, then its coordinate (`N - 1`).
+#[allow(clippy::too_many_arguments)]
+fn block_pass_n<const N: usize>(
+    ev: &Evidence,
+    i: usize,
+    joint: JointType,
+    xi: &[f64],
+    q: &[f64],
+    pre: &[Displacement<f64>],
+    subtree: &[Member],
+    cfg: &ModelConfig,
+) -> (f64, Vec<f64>, Vec<f64>) {
+    type D<const N: usize> = DualSVec64<N>;
+    let q_slot = N - 1;
     let np = joint.num_params();
-    let xid: Vec<D> = xi.iter().enumerate().map(|(j, &x)| D::from_re(x).derivative(j)).collect();
+    debug_assert_eq!(np + 1, N);
+    let xid: Vec<D<N>> = xi.iter().enumerate().map(|(j, &x)| D::<N>::from_re(x).derivative(j)).collect();
     let p = decode(joint, &xid, &ev.parts[i].com0, cfg);
     let (mut l, mut gx, mut gq) = (0.0, vec![0.0; np], vec![0.0; ev.len()]);
     for t in 0..ev.len() {
@@ -130,9 +153,9 @@ pub fn block_pass(
         if own_obs.is_none() && !any_sub {
             continue;
         }
-        let qt = if joint.movable() { D::from_re(q[t]).derivative(Q_SLOT) } else { D::from_re(q[t]) };
+        let qt = if joint.movable() { D::<N>::from_re(q[t]).derivative(q_slot) } else { D::<N>::from_re(q[t]) };
         let s = pre[t].compose_lifted(&displacement(&p, qt));
-        let mut ll = D::from_re(0.0);
+        let mut ll = D::<N>::from_re(0.0);
         if let Some(o) = own_obs {
             ll += log_likelihood_position(o, &s.apply(&p.com), p.noise, cfg.student_nu);
         }
@@ -141,10 +164,10 @@ pub fn block_pass(
         }
         for mb in subtree {
             if let Some(o) = &ev.parts[mb.m].obs[t] {
-                ll += log_likelihood_position(o, &s.apply_const(&mb.z[t]), D::from(mb.sigma), cfg.student_nu);
+                ll += log_likelihood_position(o, &s.apply_const(&mb.z[t]), D::<N>::from(mb.sigma), cfg.student_nu);
             }
             if let Some(o) = &ev.parts[mb.m].rot[t] {
-                ll += log_likelihood_rotation(o, &mat_mul(&s.r, &mb.r[t]), D::from(mb.rot_sigma), cfg.student_nu);
+                ll += log_likelihood_rotation(o, &mat_mul(&s.r, &mb.r[t]), D::<N>::from(mb.rot_sigma), cfg.student_nu);
             }
         }
         l += ll.re;
@@ -152,7 +175,7 @@ pub fn block_pass(
             for j in 0..np {
                 gx[j] += e[j];
             }
-            gq[t] = e[Q_SLOT];
+            gq[t] = e[q_slot];
         }
     }
     if joint == JointType::Revolute {
@@ -218,12 +241,97 @@ pub fn physics_prior_collapsed(
     transforms: &[Vec<Displacement<f64>>],
     model: &ModelConfig,
     robust: bool,
+    scores: Option<&mut Vec<Vec<f64>>>,
+    skip: Option<&[bool]>,
+) -> (f64, Vec<f64>, Vec<f64>, f64) {
+    physics_prior_terms(ev, i, s, observed, pre, desc, chosen, transforms, model, robust, scores, skip, Terms::Kinodynamic)
+}
+
+/// The value of [`physics_prior`] alone (`physics_prior(..).0`, without observed coordinates),
+/// its windows simulated in `f64` instead of dual numbers: the finite differences of
+/// [`Density::log_density`] need only values, and the dual numbers cost several times as much.
+#[allow(clippy::too_many_arguments)]
+pub fn physics_prior_value(
+    ev: &Evidence,
+    i: usize,
+    s: &PartValue<'_>,
+    pre: &[Displacement<f64>],
+    desc: &[usize],
+    chosen: &[PartValue<'_>],
+    transforms: &[Vec<Displacement<f64>>],
+    model: &ModelConfig,
+    robust: bool,
+) -> f64 {
+    physics_prior_terms(ev, i, s, None, pre, desc, chosen, transforms, model, robust, None, None, Terms::Value).0
+}
+
+/// [`physics_prior`] (robust windows, no observed coordinates) with, after the kinodynamic
+/// gradient, the gradient with respect to part `i`'s own standardised kinematic parameters `xk`
+/// at the positions [`kinematic_dims`] lists — from the same dual numbers as the kinodynamic one,
+/// one simulation a window (the axis and centre of mass enter the physics through the
+/// generalised inertia, the projected push, the radius and gravity's lever).
+#[allow(clippy::too_many_arguments)]
+pub fn physics_prior_kinematic(
+    ev: &Evidence,
+    i: usize,
+    s: &PartValue<'_>,
+    xk: &[f64],
+    pre: &[Displacement<f64>],
+    desc: &[usize],
+    chosen: &[PartValue<'_>],
+    transforms: &[Vec<Displacement<f64>>],
+    model: &ModelConfig,
+) -> (f64, Vec<f64>, Vec<f64>) {
+    let (l, gx, gq, _) = physics_prior_terms(ev, i, s, None, pre, desc, chosen, transforms, model, true, None, None, Terms::Kinematic(xk));
+    (l, gx, gq)
+}
+
+/// The standardised kinematic parameters (positions in a joint's block) that a joint's own
+/// physics depends on: a revolute joint's centre of mass (its radius and lever), direction and
+/// point; a prismatic joint's direction only (its generalised inertia is the carried mass, its
+/// push the force along the axis, wherever the bodies are).
+pub fn kinematic_dims(joint: JointType) -> &'static [usize] {
+    match joint {
+        JointType::Revolute => &[0, 1, 2, 5, 6, 7, 8, 9, 10],
+        JointType::Prismatic => &[5, 6, 7],
+        JointType::Rigid => &[],
+    }
+}
+
+/// What [`physics_prior_terms`] differentiates.
+#[derive(Clone, Copy)]
+enum Terms<'a> {
+    /// The value alone (windows simulated in `f64`).
+    Value,
+    /// The kinodynamic parameters and the coordinates.
+    Kinodynamic,
+    /// Those and the part's own kinematic parameters (its standardised block, given).
+    Kinematic(&'a [f64]),
+}
+
+/// [`physics_prior_collapsed`], differentiated as `terms` says: with [`Terms::Value`] the window
+/// gradients are left out of the returned ones (which then hold the rest terms' only); with
+/// [`Terms::Kinematic`] the second vector continues with the [`kinematic_dims`] gradient.
+#[allow(clippy::too_many_arguments)]
+fn physics_prior_terms(
+    ev: &Evidence,
+    i: usize,
+    s: &PartValue<'_>,
+    observed: Option<&dynamics::Observed>,
+    pre: &[Displacement<f64>],
+    desc: &[usize],
+    chosen: &[PartValue<'_>],
+    transforms: &[Vec<Displacement<f64>>],
+    model: &ModelConfig,
+    robust: bool,
     mut scores: Option<&mut Vec<Vec<f64>>>,
     skip: Option<&[bool]>,
+    terms: Terms<'_>,
 ) -> (f64, Vec<f64>, Vec<f64>, f64) {
     let Some(xi) = s.kd else { return (0.0, vec![], vec![], 0.0) };
     let dyncfg = &model.dynamics;
-    let (mut l, mut gx, mut gq) = (0.0, vec![0.0; xi.len()], vec![0.0; ev.len()]);
+    let n_kin = if let Terms::Kinematic(_) = terms { kinematic_dims(s.params.joint).len() } else { 0 };
+    let (mut l, mut gx, mut gq) = (0.0, vec![0.0; xi.len() + n_kin], vec![0.0; ev.len()]);
     // The share of `l` that the frames flagged in `skip` carry.
     let mut skipped = 0.0;
     let flagged = |t: usize| skip.is_some_and(|f| f.get(t).copied().unwrap_or(false));
@@ -264,25 +372,141 @@ pub fn physics_prior_collapsed(
         }
         let wj = window_joint(ev, i, s, win, pre, desc, chosen, transforms, model);
         let jw = wj.view(ev.effects[i]);
-        let (lw, gxw, gqw, lw_kept) = if robust {
-            let (l, gx, gq, _, kept) = dynamics::robust_window_prior_collapsed(&jw, win, s.q, observed, xi, dyncfg, model.velocity_sd_mps, skip);
-            (l, gx, gq, kept)
-        } else {
-            dynamics::window_prior_split(&jw, win, s.q, observed, xi, dyncfg, skip)
+        let (lw, gxw, gqw, lw_kept) = match terms {
+            Terms::Value => {
+                let l = if robust {
+                    dynamics::robust_window_prior_value(&jw, win, s.q, observed, xi, dyncfg, model.velocity_sd_mps)
+                } else {
+                    dynamics::window_prior_value(&jw, win, s.q, observed, xi, dyncfg)
+                };
+                (l, vec![], vec![], l)
+            }
+            Terms::Kinodynamic if robust => {
+                let (l, gx, gq, _, kept) = dynamics::robust_window_prior_collapsed(&jw, win, s.q, observed, xi, dyncfg, model.velocity_sd_mps, skip);
+                (l, gx, gq, kept)
+            }
+            Terms::Kinodynamic => dynamics::window_prior_split(&jw, win, s.q, observed, xi, dyncfg, skip),
+            Terms::Kinematic(xk) => {
+                let physics = window_prior_kinematic(ev, i, s, xk, win, pre, desc, chosen, transforms, model, &jw, observed, skip);
+                if robust {
+                    let (l, gx, gq, _, kept) = dynamics::robust_mix(win, s.q, observed, dyncfg, model.velocity_sd_mps, skip, physics);
+                    (l, gx, gq, kept)
+                } else {
+                    physics
+                }
+            }
         };
         l += lw;
         skipped += lw - lw_kept;
         for (a, b) in gx.iter_mut().zip(&gxw) {
             *a += b;
         }
-        for (k, &t) in win.frames.iter().enumerate() {
-            gq[t] += gqw[k];
+        for (&t, g) in win.frames.iter().zip(&gqw) {
+            gq[t] += g;
         }
         if let (Some(sc), Some(before)) = (scores.as_deref_mut(), &gx_before) {
             sc.push(gx.iter().zip(before).map(|(a, b)| a - b).collect());
         }
     }
     (l, gx, gq, l - skipped)
+}
+
+/// The physics prior of part `i` in window `win` ([`dynamics::window_prior_split`]) with dual
+/// numbers seeded on the kinodynamic parameters, the window's first coordinate and the part's
+/// own kinematic parameters at [`kinematic_dims`] (standardised block `xk`): the geometry of
+/// [`window_joint`] rebuilt in dual numbers from `xk` — the axis moved by the parent's
+/// displacement at the window's first frame, the part and its locked subtree carried by the
+/// joint's own displacement there. Returns `(value, gradient over kinodynamics then kinematic
+/// dims, gradient per window frame, value over the frames not flagged in skip)`.
+#[allow(clippy::too_many_arguments)]
+fn window_prior_kinematic(
+    ev: &Evidence,
+    i: usize,
+    s: &PartValue<'_>,
+    xk: &[f64],
+    win: &WindowEvidence,
+    pre: &[Displacement<f64>],
+    desc: &[usize],
+    chosen: &[PartValue<'_>],
+    transforms: &[Vec<Displacement<f64>>],
+    model: &ModelConfig,
+    jw: &dynamics::JointInWindow<'_>,
+    observed: Option<&dynamics::Observed>,
+    skip: Option<&[bool]>,
+) -> (f64, Vec<f64>, Vec<f64>, f64) {
+    let n = s.kd.map_or(0, |x| x.len()) + 1 + kinematic_dims(s.params.joint).len();
+    let args = (ev, i, s, xk, win, pre, desc, chosen, transforms, model, jw, observed, skip);
+    match n {
+        0..=8 => window_prior_kinematic_n::<8>(args),
+        9..=14 => window_prior_kinematic_n::<14>(args),
+        15..=21 => window_prior_kinematic_n::<21>(args),
+        n => panic!("{n} dual directions: at most 21 (10 kinodynamic, 1 coordinate, 9 kinematic)"),
+    }
+}
+
+type KinematicArgs<'a, 'b> = (
+    &'a Evidence,
+    usize,
+    &'a PartValue<'b>,
+    &'a [f64],
+    &'a WindowEvidence,
+    &'a [Displacement<f64>],
+    &'a [usize],
+    &'a [PartValue<'b>],
+    &'a [Vec<Displacement<f64>>],
+    &'a ModelConfig,
+    &'a dynamics::JointInWindow<'a>,
+    Option<&'a dynamics::Observed>,
+    Option<&'a [bool]>,
+);
+
+fn window_prior_kinematic_n<const N: usize>(args: KinematicArgs<'_, '_>) -> (f64, Vec<f64>, Vec<f64>, f64) {
+    type Dn<const N: usize> = DualSVec64<N>;
+    let (ev, i, s, xk, win, pre, desc, chosen, transforms, model, jw, observed, skip) = args;
+    let xi = s.kd.expect("a movable joint's kinodynamics");
+    let dims = kinematic_dims(s.params.joint);
+    let (nk, q0_slot) = (xi.len(), xi.len());
+    let xd: Vec<Dn<N>> = xi.iter().enumerate().map(|(j, &x)| Dn::<N>::from_re(x).derivative(j)).collect();
+    let kp = dynamics::decode(s.params.joint, &xd, &ev.effects[i], &model.dynamics);
+    let f0 = win.frames[0];
+    let q0 = Dn::<N>::from_re(s.q[f0]).derivative(q0_slot);
+    let mut xkd: Vec<Dn<N>> = xk.iter().map(|&x| Dn::<N>::from_re(x)).collect();
+    for (k, &j) in dims.iter().enumerate() {
+        xkd[j] = xkd[j].derivative(nk + 1 + k);
+    }
+    let p = decode(s.params.joint, &xkd, &ev.parts[i].com0, model);
+    // The joint's own displacement at the window's start, through `q0` too: gravity's moment is
+    // taken at the centre of mass there and turned from `q0` on (`gravity_at`), so both carry
+    // `q0`'s derivative, which cancels as it must (with the centre of mass held at its value the
+    // gradient in a window's first coordinate was off by a percent under gravity).
+    let own = pre[f0].compose_lifted(&displacement(&p, q0));
+    let rot = |r: &Matrix3<f64>, v: &Vector3<Dn<N>>| Vector3::from_fn(|a, _| v[0] * r[(a, 0)] + v[1] * r[(a, 1)] + v[2] * r[(a, 2)]);
+    let carried = |u: &Matrix3<f64>| mat_mul(&mat_mul(&own.r, u), &own.r.transpose());
+    // The subtree relative to the part at the window's start, then carried by `own`.
+    let to_part = inverse(&transforms[i][f0]);
+    let subtree = desc
+        .iter()
+        .zip(&jw.subtree)
+        .map(|(&m, body)| {
+            let rel = to_part.compose(&transforms[m][f0]);
+            let u = rel.r * ev.parts[m].unit_inertia * rel.r.transpose();
+            (Dn::<N>::from(body.mass), own.apply_const(&rel.apply(&chosen[m].params.com)), carried(&u))
+        })
+        .collect();
+    let geom = dynamics::WindowGeometry {
+        direction: rot(&pre[f0].r, &p.direction),
+        point: rot(&pre[f0].r, &p.point) + pre[f0].t.map(Dn::<N>::from),
+        radius: p.radius,
+        com: own.apply(&p.com),
+        unit_inertia: carried(&ev.parts[i].unit_inertia),
+        subtree,
+    };
+    let (ll, mut gq, skipped) = dynamics::window_terms_in(jw, &geom, win, s.q, observed, &kp, q0, &model.dynamics, skip);
+    let eps = ll.eps.unwrap_generic(nalgebra::Const::<N>, nalgebra::U1);
+    let mut gx: Vec<f64> = (0..nk).map(|j| eps[j]).collect();
+    gx.extend((0..dims.len()).map(|k| eps[nk + 1 + k]));
+    gq[0] += eps[q0_slot];
+    (ll.re, gx, gq, ll.re - skipped)
 }
 
 /// Part `i`'s joint in one window as the physics sees it (fixed frame, at the window's start
@@ -595,9 +819,11 @@ impl<'a> Density<'a> {
     }
 
     /// The physics prior of all movable parts at `values` and its gradient with respect to `x`:
-    /// each part's own kinodynamics and coordinates from the physics code's dual numbers; the
-    /// kinematic parameters, and kinodynamics seen by another part's physics (a child's mass),
-    /// by forward differences of the parts whose physics depends on them.
+    /// each part's own kinodynamics, coordinates and kinematic parameters from the physics code's
+    /// dual numbers ([`physics_prior_kinematic`]); what one part's parameters do to another
+    /// part's physics (a parent's axis moving its child's, a child's mass and centre of mass
+    /// loading its parent's) by forward differences of the other part's value
+    /// ([`cross_physics_differences`]).
     fn physics(&self, x: &[f64], values: &[PartValue<'_>], transforms: &[Vec<Displacement<f64>>]) -> (f64, Vec<f64>) {
         let n = values.len();
         let frames = self.ev.len();
@@ -605,11 +831,15 @@ impl<'a> Density<'a> {
         let mut grad = vec![0.0; self.dim];
         let per_part: Vec<f64> = (0..n)
             .map(|i| {
-                let (l, gx, gq) = self.part_physics(i, values, transforms);
                 let s = self.slots[i];
-                if let (Some((k, _)), Some(o)) = (s.kd, s.q) {
-                    for (j, g) in gx.iter().enumerate() {
+                let xk = &x[s.xi..s.xi + s.np];
+                let (l, gx, gq) = self.part_physics_kinematic(i, xk, values, transforms);
+                if let (Some((k, nk)), Some(o)) = (s.kd, s.q) {
+                    for (j, g) in gx.iter().take(nk).enumerate() {
                         grad[k + j] += g;
+                    }
+                    for (&j, g) in kinematic_dims(s.joint).iter().zip(&gx[nk..]) {
+                        grad[s.xi + j] += g;
                     }
                     for t in 0..frames {
                         grad[o + t] += gq[t];
@@ -622,9 +852,11 @@ impl<'a> Density<'a> {
         if !total.is_finite() {
             return (total, grad);
         }
-        let movable: Vec<usize> = (0..n).filter(|&i| self.slots[i].kd.is_some()).collect();
+        let differences = cross_physics_differences(parent, &self.slots);
+        // The differences' base values, from the same `f64` path as the perturbed ones.
+        let mut base: Vec<Option<f64>> = vec![None; n];
         let mut xp = x.to_vec();
-        for (j, idx, parts) in physics_differences(parent, &self.slots, &movable) {
+        for (j, idx, parts) in differences {
             let s = self.slots[j];
             xp[idx] = x[idx] + FD_STEP;
             let params: Vec<JointParams<f64>> = (0..n).map(|m| if m == j { self.params(&xp, m) } else { *values[m].params }).collect();
@@ -639,22 +871,38 @@ impl<'a> Density<'a> {
                 })
                 .collect();
             let tr = part_transforms(parent, &pv, frames);
-            let d: f64 = parts.iter().map(|&i| self.part_physics(i, &pv, &tr).0 - per_part[i]).sum();
+            let mut d = 0.0;
+            for &i in &parts {
+                let b = *base[i].get_or_insert_with(|| self.part_physics_value(i, values, transforms));
+                d += self.part_physics_value(i, &pv, &tr) - b;
+            }
             grad[idx] += d / FD_STEP;
             xp[idx] = x[idx];
         }
         (total, grad)
     }
 
-    /// [`physics_prior`] of part `i` (robust windows, as SVI's ELBO), or zeros when rigid.
-    fn part_physics(&self, i: usize, values: &[PartValue<'_>], transforms: &[Vec<Displacement<f64>>]) -> (f64, Vec<f64>, Vec<f64>) {
+    /// [`physics_prior_kinematic`] of part `i` (own standardised kinematic block `xk`), or zeros
+    /// when rigid.
+    fn part_physics_kinematic(&self, i: usize, xk: &[f64], values: &[PartValue<'_>], transforms: &[Vec<Displacement<f64>>]) -> (f64, Vec<f64>, Vec<f64>) {
         if values[i].kd.is_none() {
             return (0.0, vec![], vec![]);
         }
         let parent = &self.structure.parent;
         let pre = pre_transforms(parent, i, transforms, self.ev.len());
         let desc = tree::descendants(parent, i);
-        physics_prior(self.ev, i, &values[i], None, &pre, &desc, values, transforms, self.model, true, None)
+        physics_prior_kinematic(self.ev, i, &values[i], xk, &pre, &desc, values, transforms, self.model)
+    }
+
+    /// `part_physics(..).0`, simulated in `f64` ([`physics_prior_value`]).
+    fn part_physics_value(&self, i: usize, values: &[PartValue<'_>], transforms: &[Vec<Displacement<f64>>]) -> f64 {
+        if values[i].kd.is_none() {
+            return 0.0;
+        }
+        let parent = &self.structure.parent;
+        let pre = pre_transforms(parent, i, transforms, self.ev.len());
+        let desc = tree::descendants(parent, i);
+        physics_prior_value(self.ev, i, &values[i], &pre, &desc, values, transforms, self.model, true)
     }
 }
 
@@ -665,17 +913,21 @@ fn physics_dims(s: &PartSlots) -> Vec<usize> {
     (s.xi..s.xi + s.np).filter(|&k| k != s.xi + 3 && k != s.xi + 4).collect()
 }
 
-/// The forward differences of the physics: each perturbed latent `idx` of a part `j`, as
-/// `(j, idx, parts)` with the parts among `candidates` whose physics it enters — `j`'s own
-/// (kinematic parameters), its ancestors' (its mass, centre of mass and inertia ride in their
-/// subtree) and its descendants' (its displacement moves their joints). A part's own
-/// kinodynamics are exact already (dual numbers), so only the others' physics is differenced
-/// for them (its mass).
+/// The forward differences of the simulated trajectories of [`NonCentred`]: each perturbed
+/// latent `idx` of a part `j`, as `(j, idx, parts)` with the parts among `candidates` whose
+/// physics it enters — `j`'s own (kinematic parameters), its ancestors' (its mass, centre of
+/// mass and inertia ride in their subtree) and, when it is movable, its descendants' (its
+/// displacement moves their joints). A part's own kinodynamics are exact already (dual
+/// numbers), so only the others' physics is differenced for them (its mass).
 fn physics_differences(parent: &[usize], slots: &[PartSlots], candidates: &[usize]) -> Vec<(usize, usize, Vec<usize>)> {
     let mut out = Vec::new();
     for (j, s) in slots.iter().enumerate() {
         let desc = tree::descendants(parent, j);
-        let affected: Vec<usize> = candidates.iter().copied().filter(|&i| i == j || desc.contains(&i) || tree::descendants(parent, i).contains(&j)).collect();
+        // A rigid part's displacement is the identity whatever its parameters, so they reach a
+        // descendant's physics only through a movable part; its centre of mass still loads its
+        // ancestors.
+        let affected: Vec<usize> =
+            candidates.iter().copied().filter(|&i| i == j || (s.joint.movable() && desc.contains(&i)) || tree::descendants(parent, i).contains(&j)).collect();
         if affected.is_empty() {
             continue;
         }
@@ -687,6 +939,37 @@ fn physics_differences(parent: &[usize], slots: &[PartSlots], candidates: &[usiz
             if !others.is_empty() {
                 out.extend((k..k + d).map(|idx| (j, idx, others.clone())));
             }
+        }
+    }
+    out
+}
+
+/// The forward differences of [`Density::log_density`]'s physics: what a part `j`'s parameters
+/// do to *other* parts' physics (a part's own is exact, [`physics_prior_kinematic`]), as
+/// `(j, idx, parts)`, each perturbed latent `idx` with the movable parts whose physics it enters:
+/// - `j`'s kinematic parameters ([`physics_dims`]): a revolute ancestor's (the centre of mass and
+///   the inertia of `j` ride in its subtree at their places; a prismatic joint's inertia is the
+///   mass it carries, wherever it is); when `j` is movable, a descendant's that is revolute (its
+///   axis moves with `j`) or prismatic under a revolute `j` (its direction turns with `j`);
+/// - `j`'s mass: every movable ancestor's.
+fn cross_physics_differences(parent: &[usize], slots: &[PartSlots]) -> Vec<(usize, usize, Vec<usize>)> {
+    let movable = |i: usize| slots[i].kd.is_some();
+    let mut out = Vec::new();
+    for (j, s) in slots.iter().enumerate() {
+        let desc = tree::descendants(parent, j);
+        let ancestors: Vec<usize> = (0..slots.len()).filter(|&i| movable(i) && tree::descendants(parent, i).contains(&j)).collect();
+        let mut kinematic: Vec<usize> = ancestors.iter().copied().filter(|&i| slots[i].joint == JointType::Revolute).collect();
+        if s.joint.movable() {
+            kinematic.extend(desc.iter().copied().filter(|&i| {
+                movable(i) && (slots[i].joint == JointType::Revolute || (slots[i].joint == JointType::Prismatic && s.joint == JointType::Revolute))
+            }));
+        }
+        if !kinematic.is_empty() {
+            out.extend(physics_dims(s).into_iter().map(|idx| (j, idx, kinematic.clone())));
+        }
+        if let (Some((k, _)), false) = (s.kd, ancestors.is_empty()) {
+            // The mass (the third kinodynamic parameter, [`dynamics::decode`]).
+            out.push((j, k + 2, ancestors));
         }
     }
     out
@@ -733,7 +1016,8 @@ pub fn window_starts(ev: &Evidence) -> Vec<usize> {
 /// The map `y -> x` is triangular with `sigma_d` on the diagonal of each `u_t` and 1 elsewhere,
 /// so `log p_y(y) = log p(x(y)) + n log sigma_d` (`n` non-centred coordinates of the part).
 /// Gradient: the chain rule through `Psi` by dual numbers (own kinodynamics, `q_{w,0}`) and by
-/// forward differences (kinematic parameters, a descendant's mass), as [`Density`]'s physics.
+/// forward differences (kinematic parameters, a descendant's mass; [`Density`]'s physics takes
+/// a part's own kinematic parameters by dual numbers since stop 89, this map does not yet).
 pub struct NonCentred<'a> {
     density: Density<'a>,
     /// Per part: `(window, frame index in the window, grid frame)` of each non-centred coordinate.

@@ -32,7 +32,7 @@ use num_dual::DualSVec64;
 use serde::{Deserialize, Serialize};
 
 use super::likelihood::WindowEvidence;
-use super::physics::{generalised_force, FrictionLaw, generalised_inertia, JointDynamics, JointKind, JointLimit};
+use super::physics::{FrictionLaw, generalised_inertia, JointDynamics, JointKind, JointLimit};
 use super::effects::{EffectSet, EffectsConfig};
 use super::{c, JointParams, JointType, Real};
 
@@ -302,17 +302,29 @@ pub fn robust_window_prior_collapsed(
     skip: Option<&[bool]>,
 ) -> (f64, Vec<f64>, Vec<f64>, f64, f64) {
     let (lp, gxp, gqp, lp_kept) = window_prior_split(jw, win, q, observed, xi, cfg, skip);
+    robust_mix(win, q, observed, cfg, velocity_sd_mps, skip, (lp, gxp, gqp, lp_kept))
+}
+
+/// The window-robust mixture of [`robust_window_prior_collapsed`] from the physics prior's
+/// `(value, gradient in the parameters, gradient per window frame, value over the kept frames)`,
+/// whatever parameters the gradient is over.
+#[allow(clippy::too_many_arguments)]
+pub fn robust_mix(
+    win: &WindowEvidence,
+    q: &[f64],
+    observed: Option<&Observed>,
+    cfg: &DynamicsConfig,
+    velocity_sd_mps: f64,
+    skip: Option<&[bool]>,
+    physics: (f64, Vec<f64>, Vec<f64>, f64),
+) -> (f64, Vec<f64>, Vec<f64>, f64, f64) {
+    let (lp, gxp, gqp, lp_kept) = physics;
     let eps = cfg.window_outlier_prob;
     if eps <= 0.0 || win.frames.len() < 2 {
         return (lp, gxp, gqp, 1.0, lp_kept);
     }
     let (lw, gqw, lw_kept) = window_random_walk(win, q, observed, velocity_sd_mps, skip);
-    let mix = |lp: f64, lw: f64| {
-        let (a, b) = ((1.0 - eps).ln() + lp, eps.ln() + lw);
-        let m = a.max(b);
-        let l = m + ((a - m).exp() + (b - m).exp()).ln();
-        (l, (a - l).exp())
-    };
+    let mix = |lp: f64, lw: f64| window_mixture(eps, lp, lw);
     let (l, r) = mix(lp, lw);
     let (l_kept, _) = mix(lp_kept, lw_kept);
     let gx = gxp.iter().map(|g| r * g).collect();
@@ -369,40 +381,126 @@ pub fn simulate_window<T: Real>(jw: &JointInWindow<'_>, win: &WindowEvidence, q0
 /// \[m of path / s\] at the window's first step (the posterior predictive of
 /// [`crate::prediction`] starts mid-push; the model's windows start at rest).
 pub fn simulate_joint<T: Real>(jw: &JointInWindow<'_>, win: &WindowEvidence, q0: T, v0: T, kp: &KinoParams<T>, cfg: &DynamicsConfig) -> Option<Vec<T>> {
-    let p = jw.joint;
+    let scale = if jw.joint.joint == JointType::Revolute { jw.joint.radius } else { 1.0 };
+    simulate_scaled(jw, &WindowGeometry::lifted(jw), scale, win, q0, v0, kp, cfg)
+}
+
+/// The geometry of one joint in one window as the physics sees it (fixed frame, at the window's
+/// start), in any scalar type: [`JointInWindow`]'s, or with the derivatives of the joint's own
+/// kinematic parameters (dual numbers seeded on them, [`crate::model::density`]), so that one
+/// simulation gives the physics prior's gradient in the axis and centre of mass too.
+#[derive(Debug, Clone)]
+pub struct WindowGeometry<T: Real> {
+    /// Unit axis direction and a point on the axis \[m\].
+    pub direction: Vector3<T>,
+    pub point: Vector3<T>,
+    /// A revolute joint's radius (path per radian) \[m\]; unused for a prismatic one.
+    pub radius: T,
+    /// The child's centre of mass \[m\] and inertia per kilogram \[m²\].
+    pub com: Vector3<T>,
+    pub unit_inertia: Matrix3<T>,
+    /// The locked subtree's bodies: mass \[kg\], centre of mass, inertia per kilogram.
+    pub subtree: Vec<(T, Vector3<T>, Matrix3<T>)>,
+}
+
+impl<T: Real> WindowGeometry<T> {
+    /// `jw`'s geometry as constants of the scalar type.
+    pub fn lifted(jw: &JointInWindow<'_>) -> Self {
+        let p = jw.joint;
+        WindowGeometry {
+            direction: p.direction.map(T::from),
+            point: p.point.map(T::from),
+            radius: T::from(p.radius),
+            com: jw.com.map(T::from),
+            unit_inertia: jw.unit_inertia.map(T::from),
+            subtree: jw.subtree.iter().map(|b| (T::from(b.mass), b.com.map(T::from), b.unit_inertia.map(T::from))).collect(),
+        }
+    }
+}
+
+/// [`simulate_joint`] with the geometry `geom` in place of `jw`'s (whose joint type, push and
+/// effects it still uses), the radius's derivatives carried.
+pub fn simulate_joint_in<T: Real>(jw: &JointInWindow<'_>, geom: &WindowGeometry<T>, win: &WindowEvidence, q0: T, v0: T, kp: &KinoParams<T>, cfg: &DynamicsConfig) -> Option<Vec<T>> {
+    if jw.joint.joint == JointType::Revolute {
+        simulate_scaled(jw, geom, Radius(geom.radius), win, q0, v0, kp, cfg)
+    } else {
+        simulate_scaled(jw, geom, 1.0, win, q0, v0, kp, cfg)
+    }
+}
+
+/// Metres of path per unit of the physics' joint coordinate: a revolute joint's radius (per
+/// radian), 1 for a prismatic joint. A constant (`f64`) where it carries no derivatives, so that
+/// the dual numbers of [`simulate_joint`] divide by a constant, as they always did (to the last bit).
+trait PathScale<T: Real>: Copy {
+    /// Path \[m\] to the joint coordinate.
+    fn to_joint(self, x: T) -> T;
+    /// The joint coordinate to path \[m\].
+    fn to_path(self, x: T) -> T;
+}
+
+impl<T: Real> PathScale<T> for f64 {
+    fn to_joint(self, x: T) -> T {
+        x / self
+    }
+    fn to_path(self, x: T) -> T {
+        x * self
+    }
+}
+
+/// A radius of the scalar type (with derivatives).
+#[derive(Clone, Copy)]
+struct Radius<T>(T);
+
+impl<T: Real> PathScale<T> for Radius<T> {
+    fn to_joint(self, x: T) -> T {
+        x / self.0
+    }
+    fn to_path(self, x: T) -> T {
+        x * self.0
+    }
+}
+
+#[allow(clippy::too_many_arguments)]
+fn simulate_scaled<T: Real>(
+    jw: &JointInWindow<'_>,
+    geom: &WindowGeometry<T>,
+    scale: impl PathScale<T>,
+    win: &WindowEvidence,
+    q0: T,
+    v0: T,
+    kp: &KinoParams<T>,
+    cfg: &DynamicsConfig,
+) -> Option<Vec<T>> {
     // Joint coordinate of the physics: the angle for a revolute joint (path / radius), metres for
     // a prismatic one.
-    let (kind, scale) = match p.joint {
-        JointType::Revolute => (JointKind::Revolute, p.radius),
-        _ => (JointKind::Prismatic, 1.0),
-    };
+    let kind = if jw.joint.joint == JointType::Revolute { JointKind::Revolute } else { JointKind::Prismatic };
     let last = win.frame_substep[win.frames.len() - 1];
     let simulated = jw.pushed || kp.stiffness.re() > 0.0 || jw.effects.gravity || v0.re() != 0.0;
     if !simulated {
         return None;
     }
-    let mut bodies = vec![(kp.mass, jw.com.map(T::from), jw.unit_inertia.map(T::from))];
-    bodies.extend(jw.subtree.iter().map(|b| (T::from(b.mass), b.com.map(T::from), b.unit_inertia.map(T::from))));
-    let inertia = generalised_inertia(kind, &p.direction.map(T::from), &p.point.map(T::from), &bodies);
-    let tau: Vec<f64> = (0..last)
-        .map(|n| if jw.pushed { generalised_force(kind, &p.direction, &p.point, &win.point[n], &win.force[n], &win.torque[n]) } else { 0.0 })
+    let mut bodies = vec![(kp.mass, geom.com, geom.unit_inertia)];
+    bodies.extend(geom.subtree.iter().cloned());
+    let (d, point) = (&geom.direction, &geom.point);
+    let inertia = generalised_inertia(kind, d, point, &bodies);
+    let tau: Vec<T> = (0..last)
+        .map(|n| if jw.pushed { super::physics::generalised_force_of(kind, d, point, &win.point[n], &win.force[n], &win.torque[n]) } else { T::from(0.0) })
         .collect();
-    let mut jd = JointDynamics::new(inertia, kp.damping, kp.friction, kp.stiffness, kp.rest / scale);
+    let mut jd = JointDynamics::new(inertia, kp.damping, kp.friction, kp.stiffness, scale.to_joint(kp.rest));
     if let Some((lower, upper, stiffness)) = kp.limit {
-        let stop = |position: T, upper: bool| JointLimit { position: position / scale, stiffness, upper, width: cfg.effects.limit_width_m / scale };
+        let stop = |position: T, upper: bool| JointLimit { position: scale.to_joint(position), stiffness, upper, width: scale.to_joint(T::from(cfg.effects.limit_width_m)) };
         jd.limits = [lower.map(|p| stop(p, false)), upper.map(|p| stop(p, true))];
     }
     jd.quadratic_damping = kp.quadratic_damping;
     if jw.effects.gravity {
-        let g = Vector3::from(cfg.effects.gravity);
-        let d = p.direction;
-        jd.gravity_at = q0 / scale;
+        let g = Vector3::from(cfg.effects.gravity).map(T::from);
+        jd.gravity_at = scale.to_joint(q0);
         for (m, com, _) in &bodies {
             match kind {
                 JointKind::Revolute => {
                     // The weight's moment turns with the joint: r(a) = R(d, a) r_perp + r_par.
-                    let r = com.map(|x| x.re()) - p.point;
-                    let perp = r - d * r.dot(&d);
+                    let r = com - point;
+                    let perp = r - d * r.dot(d);
                     jd.gravity[1] += *m * d.dot(&perp.cross(&g));
                     jd.gravity[2] += *m * d.dot(&d.cross(&perp).cross(&g));
                 }
@@ -411,7 +509,7 @@ pub fn simulate_joint<T: Real>(jw: &JointInWindow<'_>, win: &WindowEvidence, q0:
         }
     }
     let mut traj = vec![q0];
-    traj.extend(jd.simulate(q0 / scale, v0 / scale, &tau, win.h, cfg.friction_law).into_iter().map(|x| x * scale));
+    traj.extend(jd.simulate(scale.to_joint(q0), scale.to_joint(v0), &tau, win.h, cfg.friction_law).into_iter().map(|x| scale.to_path(x)));
     Some(traj)
 }
 
@@ -493,40 +591,106 @@ fn window_prior_n<const N: usize>(
     let q0_slot = N - 1;
     let xd: Vec<D<N>> = xi.iter().enumerate().map(|(j, &x)| D::<N>::from_re(x).derivative(j)).collect();
     let kp = decode(jw.joint.joint, &xd, &jw.effects, cfg);
-    let frames = &win.frames;
-    let q0 = D::<N>::from_re(q[frames[0]]).derivative(q0_slot);
-    // No force on the subtree, no spring, no gravity: the joint stays where it is.
+    let q0 = D::<N>::from_re(q[win.frames[0]]).derivative(q0_slot);
     let traj = simulate_window(jw, win, q0, &kp, cfg);
+    let (ll, mut gq, skipped_value) = window_terms(traj, win, q, observed, &kp, q0, cfg, skip);
+    let eps = ll.eps.unwrap_generic(nalgebra::Const::<N>, nalgebra::U1);
+    let gx: Vec<f64> = (0..nk).map(|j| eps[j]).collect();
+    gq[0] += eps[q0_slot];
+    (ll.re, gx, gq, ll.re - skipped_value)
+}
+
+/// The value of [`window_prior`] alone, simulated in `f64`: what a finite difference of the
+/// physics prior needs (the kinematic parameters' derivatives in [`crate::model::density`]), at
+/// a fraction of the dual numbers' cost. Equal to `window_prior(..).0`.
+pub fn window_prior_value(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64], observed: Option<&Observed>, xi: &[f64], cfg: &DynamicsConfig) -> f64 {
+    let kp = decode::<f64>(jw.joint.joint, xi, &jw.effects, cfg);
+    let q0 = q[win.frames[0]];
+    window_terms(simulate_window(jw, win, q0, &kp, cfg), win, q, observed, &kp, q0, cfg, None).0
+}
+
+/// The value of [`robust_window_prior`] alone (see [`window_prior_value`]).
+pub fn robust_window_prior_value(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64], observed: Option<&Observed>, xi: &[f64], cfg: &DynamicsConfig, velocity_sd_mps: f64) -> f64 {
+    let lp = window_prior_value(jw, win, q, observed, xi, cfg);
+    if cfg.window_outlier_prob <= 0.0 || win.frames.len() < 2 {
+        return lp;
+    }
+    let (lw, _, _) = window_random_walk(win, q, observed, velocity_sd_mps, None);
+    window_mixture(cfg.window_outlier_prob, lp, lw).0
+}
+
+/// `log((1 - eps) e^lp + eps e^lw)` and the first component's posterior probability.
+fn window_mixture(eps: f64, lp: f64, lw: f64) -> (f64, f64) {
+    let (a, b) = ((1.0 - eps).ln() + lp, eps.ln() + lw);
+    let m = a.max(b);
+    let l = m + ((a - m).exp() + (b - m).exp()).ln();
+    (l, (a - l).exp())
+}
+
+/// The terms of [`window_prior`] with the joint's geometry `geom` of the scalar type (its own
+/// kinematic parameters' derivatives carried through the simulation), at decoded kinodynamics
+/// `kp` and start `q0`: the log density, its direct derivative with respect to each window
+/// frame's coordinate (the first left 0: it enters through the simulation, the dual part), and
+/// the share of the value of the frames flagged in `skip`.
+#[allow(clippy::too_many_arguments)]
+pub fn window_terms_in<T: Real>(
+    jw: &JointInWindow<'_>,
+    geom: &WindowGeometry<T>,
+    win: &WindowEvidence,
+    q: &[f64],
+    observed: Option<&Observed>,
+    kp: &KinoParams<T>,
+    q0: T,
+    cfg: &DynamicsConfig,
+    skip: Option<&[bool]>,
+) -> (T, Vec<f64>, f64) {
+    let traj = simulate_joint_in(jw, geom, win, q0, T::from(0.0), kp, cfg);
+    window_terms(traj, win, q, observed, kp, q0, cfg, skip)
+}
+
+/// The terms of [`window_prior`] for the simulated trajectory `traj` (`None`: nothing moves the
+/// joint) at decoded kinodynamics `kp` and start `q0`, in any scalar type (dual numbers for the
+/// gradient, `f64` for the value alone): as [`window_terms_in`].
+#[allow(clippy::too_many_arguments)]
+fn window_terms<T: Real>(
+    traj: Option<Vec<T>>,
+    win: &WindowEvidence,
+    q: &[f64],
+    observed: Option<&Observed>,
+    kp: &KinoParams<T>,
+    q0: T,
+    cfg: &DynamicsConfig,
+    skip: Option<&[bool]>,
+) -> (T, Vec<f64>, f64) {
+    let frames = &win.frames;
+    // No force on the subtree, no spring, no gravity (`traj` None): the joint stays where it is.
     let dev2 = kp.deviation * kp.deviation;
-    let half_log_dev2 = num_dual::DualNum::ln(&dev2) * 0.5;
-    let mut ll = D::<N>::from(0.0);
+    let half_log_dev2 = dev2.ln() * 0.5;
+    let mut ll = T::from(0.0);
     let mut gq = vec![0.0; frames.len()];
     // The skipped frames' share of the value (their terms are leaves: each integrates to 1).
     let mut skipped_value = 0.0;
     for (k, &t) in frames.iter().enumerate().skip(1) {
         let psi = traj.as_ref().map_or(q0, |tr| tr[win.frame_substep[k]]);
-        let d = D::<N>::from(q[t]) - psi;
+        let d = T::from(q[t]) - psi;
         let term = match observed.map(|o| (o.var[t], o.nu)) {
             Some((r2, obs_nu)) if r2 > 0.0 => {
                 let var = dev2 + r2;
-                gq[k] = student_score(d.re, var.re, obs_nu);
-                super::likelihood::log_student(d * d / var, num_dual::DualNum::ln(&var) * 0.5, 1, obs_nu)
+                gq[k] = student_score(d.re(), var.re(), obs_nu);
+                super::likelihood::log_student(d * d / var, var.ln() * 0.5, 1, obs_nu)
             }
             _ => {
                 // Direct derivative with respect to q_t (the dual part carries d/d q_{w,0} via psi).
-                gq[k] = student_score(d.re, dev2.re, cfg.deviation_nu);
+                gq[k] = student_score(d.re(), dev2.re(), cfg.deviation_nu);
                 super::likelihood::log_student(d * d / dev2, half_log_dev2, 1, cfg.deviation_nu)
             }
         };
         if skipped(skip, t) {
-            skipped_value += term.re;
+            skipped_value += term.re();
         }
         ll += term;
     }
-    let eps = ll.eps.unwrap_generic(nalgebra::Const::<N>, nalgebra::U1);
-    let gx: Vec<f64> = (0..nk).map(|j| eps[j]).collect();
-    gq[0] += eps[q0_slot];
-    (ll.re, gx, gq, ll.re - skipped_value)
+    (ll, gq, skipped_value)
 }
 
 #[cfg(test)]
@@ -664,6 +828,39 @@ mod tests {
         let xi: Vec<f64> = (0..num_params(&effects)).map(|j| 0.1 * ((j as f64) * 1.7).sin()).collect();
         assert_eq!(xi.len(), 4 + 2 + 3 + 1);
         check_gradients(&jw, &win, &q, &xi, &cfg);
+    }
+
+    /// The value-only path ([`window_prior_value`], [`robust_window_prior_value`], simulated in
+    /// `f64`) gives the dual-number path's value, with every effect on, with and without observed
+    /// coordinates: the finite differences of the density rest on the two agreeing.
+    #[test]
+    fn value_only_physics_prior_equals_the_dual_value() {
+        let cfg = DynamicsConfig::default();
+        let joint = door(Vector3::new(0.3, 0.0, 1.0).normalize());
+        let unit_inertia = Matrix3::from_diagonal(&Vector3::new(0.01, 0.01, 0.02));
+        for effects in [
+            EffectSet::default(),
+            EffectSet {
+                spring: true,
+                limit: Some(crate::model::effects::LimitSpec { lower: Some(-0.05), upper: Some(0.12) }),
+                gravity: true,
+                quadratic_damping: true,
+            },
+        ] {
+            let jw = JointInWindow { joint: &joint, com: joint.com, unit_inertia, subtree: vec![], pushed: true, effects };
+            let win = push_window(&cfg, 8.0);
+            let q: Vec<f64> = (0..13).map(|k| 0.01 * k as f64 + 0.002 * ((k as f64) * 2.3).sin()).collect();
+            let xi: Vec<f64> = (0..num_params(&effects)).map(|j| 0.1 * ((j as f64) * 1.7).sin()).collect();
+            let observed = Observed { var: (0..13).map(|k| if k % 3 == 0 { 0.0 } else { 1e-6 }).collect(), nu: 4.0 };
+            for obs in [None, Some(&observed)] {
+                let dual = window_prior(&jw, &win, &q, obs, &xi, &cfg).0;
+                let value = window_prior_value(&jw, &win, &q, obs, &xi, &cfg);
+                assert!((dual - value).abs() <= 1e-12 * (1.0 + dual.abs()), "{dual} vs {value}");
+                let dual = robust_window_prior(&jw, &win, &q, obs, &xi, &cfg, 0.2).0;
+                let value = robust_window_prior_value(&jw, &win, &q, obs, &xi, &cfg, 0.2);
+                assert!((dual - value).abs() <= 1e-12 * (1.0 + dual.abs()), "robust: {dual} vs {value}");
+            }
+        }
     }
 
     /// The window-robust prior: a window the physics explains stays physics (responsibility near

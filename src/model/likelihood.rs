@@ -397,8 +397,26 @@ pub(crate) fn log_student<T: Real>(m2: T, half_log_det: T, dim: usize, nu: f64) 
     if !(nu.is_finite() && nu > 0.0) {
         return -(m2 * 0.5) - half_log_det - c::<T>(0.5 * d * (2.0 * std::f64::consts::PI).ln());
     }
-    let norm = libm::lgamma(0.5 * (nu + d)) - libm::lgamma(0.5 * nu) - 0.5 * d * (nu * std::f64::consts::PI).ln();
-    -((m2 / nu + 1.0).ln() * (0.5 * (nu + d))) - half_log_det + norm
+    -((m2 / nu + 1.0).ln() * (0.5 * (nu + d))) - half_log_det + student_norm(nu, d)
+}
+
+/// The Student-t's log normalising constant (without the covariance's determinant),
+/// `lgamma((nu + d) / 2) - lgamma(nu / 2) - d/2 log(nu pi)`, remembered for the last `(nu, d)` of
+/// the thread: `nu` is a setting, and two `lgamma`s a frame were a tenth of a log density's time.
+#[inline]
+fn student_norm(nu: f64, d: f64) -> f64 {
+    thread_local! {
+        static LAST: std::cell::Cell<(f64, f64, f64)> = const { std::cell::Cell::new((f64::NAN, f64::NAN, f64::NAN)) };
+    }
+    LAST.with(|last| {
+        let (n, dd, v) = last.get();
+        if n == nu && dd == d {
+            return v;
+        }
+        let v = libm::lgamma(0.5 * (nu + d)) - libm::lgamma(0.5 * nu) - 0.5 * d * (nu * std::f64::consts::PI).ln();
+        last.set((nu, d, v));
+        v
+    })
 }
 
 /// Log-likelihood of one part's centre of mass in one frame (eq. 2): covariance

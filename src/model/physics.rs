@@ -454,14 +454,16 @@ pub struct JointLimit<T: Real> {
     pub stiffness: T,
     /// Whether the stop is above (`true`) or below the free range.
     pub upper: bool,
-    pub width: f64,
+    /// The contact width (m or rad): of the scalar type, as it scales with a revolute joint's radius.
+    pub width: T,
 }
 
 impl<T: Real> JointLimit<T> {
     /// The stop's force at `q` and its derivative `df/dq` (<= 0).
     pub fn force(&self, q: T) -> (T, T) {
         let s = if self.upper { 1.0 } else { -1.0 };
-        let x = (q - self.position) * (s / self.width);
+        // `s / width`, written so that `width` may carry derivatives (the same value: s is +-1).
+        let x = (q - self.position) * (self.width.recip() * s);
         // softplus and the logistic function, overflow-safe in both directions.
         let (sp, sig) = if x.re() > 0.0 {
             let e = (-x).exp();
@@ -470,7 +472,7 @@ impl<T: Real> JointLimit<T> {
             let e = x.exp();
             ((e + 1.0).ln(), e / (e + 1.0))
         };
-        (-(self.stiffness * sp) * (s * self.width), -(self.stiffness * sig))
+        (-(self.stiffness * sp) * (self.width * s), -(self.stiffness * sig))
     }
 }
 
@@ -518,10 +520,16 @@ pub fn generalised_inertia<T: Real>(joint: JointKind, axis: &Vector3<T>, point: 
 /// the moment about a revolute axis (unit `axis` through `point`), or the force along a prismatic
 /// one.
 pub fn generalised_force(joint: JointKind, axis: &Vector3<f64>, point: &Vector3<f64>, at: &Vector3<f64>, force: &Vector3<f64>, torque: &Vector3<f64>) -> f64 {
+    generalised_force_of(joint, axis, point, at, force, torque)
+}
+
+/// [`generalised_force`] with the axis of any scalar type (its derivatives carried); the same
+/// value to the last bit for `f64`.
+pub fn generalised_force_of<T: Real>(joint: JointKind, axis: &Vector3<T>, point: &Vector3<T>, at: &Vector3<f64>, force: &Vector3<f64>, torque: &Vector3<f64>) -> T {
     match joint {
-        JointKind::Rigid => 0.0,
-        JointKind::Prismatic => axis.dot(force),
-        JointKind::Revolute => axis.dot(&((at - point).cross(force) + torque)),
+        JointKind::Rigid => c(0.0),
+        JointKind::Prismatic => axis.dot(&force.map(c::<T>)),
+        JointKind::Revolute => axis.dot(&((at.map(c::<T>) - point).cross(&force.map(c::<T>)) + torque.map(c::<T>))),
     }
 }
 
@@ -616,7 +624,9 @@ impl<T: Real> JointDynamics<T> {
     /// Integrate from `(q0, v0)`, the generalised force being `tau[n]` during substep `n` of
     /// length `h` \[s\]; returns the coordinate after every substep. `friction` sets the
     /// regularisation of the Coulomb friction (module docs).
-    pub fn simulate(&self, q0: T, v0: T, tau: &[f64], h: f64, friction: FrictionLaw) -> Vec<T> {
+    /// `tau` is of the scalar type: its derivatives (with respect to the axis that the force is
+    /// projected on) carry through the step like the parameters'.
+    pub fn simulate(&self, q0: T, v0: T, tau: &[T], h: f64, friction: FrictionLaw) -> Vec<T> {
         let (mut q, mut v) = (q0, v0);
         let (ir, br, fr) = (self.inertia.re(), self.damping.re(), self.friction.re());
         // Friction's velocity scale `v_s = min(mu t_f / I, v_max)` (module docs); with no
@@ -633,7 +643,8 @@ impl<T: Real> JointDynamics<T> {
             c::<T>(0.0)
         };
         tau.iter()
-            .map(|&t| {
+            .map(|&tau_t| {
+                let t = tau_t.re();
                 // The scalar case of `implicit_velocity`, without its allocations: Newton on the
                 // real parts from the previous velocity, safeguarded by bisection on the bracket
                 // that a monotone residual always has, then one Newton step in T.
@@ -683,7 +694,7 @@ impl<T: Real> JointDynamics<T> {
                     dfr_t += self.quadratic_damping * aw * 2.0;
                 }
                 let force = -(self.damping * wt) - fr_t + f0 - k * wt * h;
-                let res = self.inertia * (wt - v) - (force + t) * h;
+                let res = self.inertia * (wt - v) - (force + tau_t) * h;
                 let slope = self.inertia + (self.damping + dfr_t + k * h) * h;
                 v = wt - res / slope;
                 q += v * h;
