@@ -324,7 +324,12 @@ pub fn robust_mix(
         return (lp, gxp, gqp, 1.0, lp_kept);
     }
     let (lw, gqw, lw_kept) = window_random_walk(win, q, observed, velocity_sd_mps, skip);
-    let mix = |lp: f64, lw: f64| window_mixture(eps, lp, lw);
+    let mix = |lp: f64, lw: f64| {
+        let (a, b) = ((1.0 - eps).ln() + lp, eps.ln() + lw);
+        let m = a.max(b);
+        let l = m + ((a - m).exp() + (b - m).exp()).ln();
+        (l, (a - l).exp())
+    };
     let (l, r) = mix(lp, lw);
     let (l_kept, _) = mix(lp_kept, lw_kept);
     let gx = gxp.iter().map(|g| r * g).collect();
@@ -612,19 +617,7 @@ pub fn window_prior_value(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64
 /// The value of [`robust_window_prior`] alone (see [`window_prior_value`]).
 pub fn robust_window_prior_value(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64], observed: Option<&Observed>, xi: &[f64], cfg: &DynamicsConfig, velocity_sd_mps: f64) -> f64 {
     let lp = window_prior_value(jw, win, q, observed, xi, cfg);
-    if cfg.window_outlier_prob <= 0.0 || win.frames.len() < 2 {
-        return lp;
-    }
-    let (lw, _, _) = window_random_walk(win, q, observed, velocity_sd_mps, None);
-    window_mixture(cfg.window_outlier_prob, lp, lw).0
-}
-
-/// `log((1 - eps) e^lp + eps e^lw)` and the first component's posterior probability.
-fn window_mixture(eps: f64, lp: f64, lw: f64) -> (f64, f64) {
-    let (a, b) = ((1.0 - eps).ln() + lp, eps.ln() + lw);
-    let m = a.max(b);
-    let l = m + ((a - m).exp() + (b - m).exp()).ln();
-    (l, (a - l).exp())
+    robust_mix(win, q, observed, cfg, velocity_sd_mps, None, (lp, vec![], vec![], lp)).0
 }
 
 /// The terms of [`window_prior`] with the joint's geometry `geom` of the scalar type (its own
