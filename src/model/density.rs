@@ -34,6 +34,8 @@
 //! SVI's conditional ELBOs are expectations of the same terms under its guide
 //! ([`crate::inference::svi`]).
 
+use std::cell::RefCell;
+
 use nalgebra::{Matrix3, Vector3};
 use num_dual::DualSVec64;
 
@@ -281,8 +283,9 @@ pub fn physics_prior_kinematic(
     chosen: &[PartValue<'_>],
     transforms: &[Vec<Displacement<f64>>],
     model: &ModelConfig,
+    trajectories: Option<&RefCell<Vec<dynamics::Trajectory>>>,
 ) -> (f64, Vec<f64>, Vec<f64>) {
-    let (l, gx, gq, _) = physics_prior_terms(ev, i, s, None, pre, desc, chosen, transforms, model, true, None, None, Terms::Kinematic(xk));
+    let (l, gx, gq, _) = physics_prior_terms(ev, i, s, None, pre, desc, chosen, transforms, model, true, None, None, Terms::Kinematic(xk, trajectories));
     (l, gx, gq)
 }
 
@@ -305,8 +308,10 @@ enum Terms<'a> {
     Value,
     /// The kinodynamic parameters and the coordinates.
     Kinodynamic,
-    /// Those and the part's own kinematic parameters (its standardised block, given).
-    Kinematic(&'a [f64]),
+    /// Those and the part's own kinematic parameters (its standardised block, given); with a
+    /// sink, each window's simulated trajectory and its derivatives are pushed to it, in window
+    /// order ([`NonCentred`]'s chain rule).
+    Kinematic(&'a [f64], Option<&'a RefCell<Vec<dynamics::Trajectory>>>),
 }
 
 /// [`physics_prior_collapsed`], differentiated as `terms` says: with [`Terms::Value`] the window
@@ -330,7 +335,7 @@ fn physics_prior_terms(
 ) -> (f64, Vec<f64>, Vec<f64>, f64) {
     let Some(xi) = s.kd else { return (0.0, vec![], vec![], 0.0) };
     let dyncfg = &model.dynamics;
-    let n_kin = if let Terms::Kinematic(_) = terms { kinematic_dims(s.params.joint).len() } else { 0 };
+    let n_kin = if let Terms::Kinematic(..) = terms { kinematic_dims(s.params.joint).len() } else { 0 };
     let (mut l, mut gx, mut gq) = (0.0, vec![0.0; xi.len() + n_kin], vec![0.0; ev.len()]);
     // The share of `l` that the frames flagged in `skip` carry.
     let mut skipped = 0.0;
@@ -386,8 +391,8 @@ fn physics_prior_terms(
                 (l, gx, gq, kept)
             }
             Terms::Kinodynamic => dynamics::window_prior_split(&jw, win, s.q, observed, xi, dyncfg, skip),
-            Terms::Kinematic(xk) => {
-                let physics = window_prior_kinematic(ev, i, s, xk, win, pre, desc, chosen, transforms, model, &jw, observed, skip);
+            Terms::Kinematic(xk, sink) => {
+                let physics = window_prior_kinematic(ev, i, s, xk, win, pre, desc, chosen, transforms, model, &jw, observed, skip, sink);
                 if robust {
                     let (l, gx, gq, _, kept) = dynamics::robust_mix(win, s.q, observed, dyncfg, model.velocity_sd_mps, skip, physics);
                     (l, gx, gq, kept)
@@ -433,9 +438,10 @@ fn window_prior_kinematic(
     jw: &dynamics::JointInWindow<'_>,
     observed: Option<&dynamics::Observed>,
     skip: Option<&[bool]>,
+    sink: Option<&RefCell<Vec<dynamics::Trajectory>>>,
 ) -> (f64, Vec<f64>, Vec<f64>, f64) {
     let n = s.kd.map_or(0, |x| x.len()) + 1 + kinematic_dims(s.params.joint).len();
-    let args = (ev, i, s, xk, win, pre, desc, chosen, transforms, model, jw, observed, skip);
+    let args = (ev, i, s, xk, win, pre, desc, chosen, transforms, model, jw, observed, skip, sink);
     match n {
         0..=8 => window_prior_kinematic_n::<8>(args),
         9..=14 => window_prior_kinematic_n::<14>(args),
@@ -458,11 +464,12 @@ type KinematicArgs<'a, 'b> = (
     &'a dynamics::JointInWindow<'a>,
     Option<&'a dynamics::Observed>,
     Option<&'a [bool]>,
+    Option<&'a RefCell<Vec<dynamics::Trajectory>>>,
 );
 
 fn window_prior_kinematic_n<const N: usize>(args: KinematicArgs<'_, '_>) -> (f64, Vec<f64>, Vec<f64>, f64) {
     type Dn<const N: usize> = DualSVec64<N>;
-    let (ev, i, s, xk, win, pre, desc, chosen, transforms, model, jw, observed, skip) = args;
+    let (ev, i, s, xk, win, pre, desc, chosen, transforms, model, jw, observed, skip, sink) = args;
     let xi = s.kd.expect("a movable joint's kinodynamics");
     let dims = kinematic_dims(s.params.joint);
     let (nk, q0_slot) = (xi.len(), xi.len());
@@ -501,7 +508,21 @@ fn window_prior_kinematic_n<const N: usize>(args: KinematicArgs<'_, '_>) -> (f64
         unit_inertia: carried(&ev.parts[i].unit_inertia),
         subtree,
     };
-    let (ll, mut gq, skipped) = dynamics::window_terms_in(jw, &geom, win, s.q, observed, &kp, q0, &model.dynamics, skip);
+    let traj = dynamics::simulate_joint_in(jw, &geom, win, q0, Dn::<N>::from(0.0), &kp, &model.dynamics);
+    if let Some(sink) = sink {
+        let k_len = win.frames.len();
+        let mut out = dynamics::Trajectory { psi: Vec::with_capacity(k_len), d_xi: Vec::with_capacity(k_len), d_q0: Vec::with_capacity(k_len), d_kinematic: Vec::with_capacity(k_len) };
+        for k in 0..k_len {
+            let psi = if k == 0 { q0 } else { traj.as_ref().map_or(q0, |tr| tr[win.frame_substep[k]]) };
+            let eps = psi.eps.unwrap_generic(nalgebra::Const::<N>, nalgebra::U1);
+            out.psi.push(psi.re);
+            out.d_xi.push((0..nk).map(|j| eps[j]).collect());
+            out.d_q0.push(eps[q0_slot]);
+            out.d_kinematic.push((0..dims.len()).map(|m| eps[nk + 1 + m]).collect());
+        }
+        sink.borrow_mut().push(out);
+    }
+    let (ll, mut gq, skipped) = dynamics::window_terms(traj, win, s.q, observed, &kp, q0, &model.dynamics, skip);
     let eps = ll.eps.unwrap_generic(nalgebra::Const::<N>, nalgebra::U1);
     let mut gx: Vec<f64> = (0..nk).map(|j| eps[j]).collect();
     gx.extend((0..dims.len()).map(|k| eps[nk + 1 + k]));
@@ -730,6 +751,13 @@ impl<'a> Density<'a> {
     /// `log p(x, evidence | structure)` up to a constant, and its gradient (`grad`, length
     /// [`Self::dim`], overwritten).
     pub fn log_density(&self, x: &[f64], grad: &mut [f64]) -> f64 {
+        self.log_density_with(x, grad, None)
+    }
+
+    /// [`Self::log_density`], pushing each movable part's simulated window trajectories, with
+    /// their derivatives (kinodynamics, the window's first coordinate, [`kinematic_dims`]), to
+    /// `trajectories[i]` in window order when given (dynamic mode; [`NonCentred`]).
+    fn log_density_with(&self, x: &[f64], grad: &mut [f64], trajectories: Option<&[RefCell<Vec<dynamics::Trajectory>>]>) -> f64 {
         grad.iter_mut().for_each(|g| *g = 0.0);
         let (ev, model) = (self.ev, self.model);
         let (n, frames) = (ev.parts.len(), ev.len());
@@ -809,7 +837,7 @@ impl<'a> Density<'a> {
             }
         }
         if !ev.windows.is_empty() {
-            let (l, g) = self.physics(x, &values, &transforms);
+            let (l, g) = self.physics(x, &values, &transforms, trajectories);
             lp += l;
             for (a, b) in grad.iter_mut().zip(&g) {
                 *a += b;
@@ -824,7 +852,7 @@ impl<'a> Density<'a> {
     /// part's physics (a parent's axis moving its child's, a child's mass and centre of mass
     /// loading its parent's) by forward differences of the other part's value
     /// ([`cross_physics_differences`]).
-    fn physics(&self, x: &[f64], values: &[PartValue<'_>], transforms: &[Vec<Displacement<f64>>]) -> (f64, Vec<f64>) {
+    fn physics(&self, x: &[f64], values: &[PartValue<'_>], transforms: &[Vec<Displacement<f64>>], trajectories: Option<&[RefCell<Vec<dynamics::Trajectory>>]>) -> (f64, Vec<f64>) {
         let n = values.len();
         let frames = self.ev.len();
         let parent = &self.structure.parent;
@@ -833,7 +861,7 @@ impl<'a> Density<'a> {
             .map(|i| {
                 let s = self.slots[i];
                 let xk = &x[s.xi..s.xi + s.np];
-                let (l, gx, gq) = self.part_physics_kinematic(i, xk, values, transforms);
+                let (l, gx, gq) = self.part_physics_kinematic(i, xk, values, transforms, trajectories.map(|t| &t[i]));
                 if let (Some((k, nk)), Some(o)) = (s.kd, s.q) {
                     for (j, g) in gx.iter().take(nk).enumerate() {
                         grad[k + j] += g;
@@ -884,14 +912,21 @@ impl<'a> Density<'a> {
 
     /// [`physics_prior_kinematic`] of part `i` (own standardised kinematic block `xk`), or zeros
     /// when rigid.
-    fn part_physics_kinematic(&self, i: usize, xk: &[f64], values: &[PartValue<'_>], transforms: &[Vec<Displacement<f64>>]) -> (f64, Vec<f64>, Vec<f64>) {
+    fn part_physics_kinematic(
+        &self,
+        i: usize,
+        xk: &[f64],
+        values: &[PartValue<'_>],
+        transforms: &[Vec<Displacement<f64>>],
+        trajectories: Option<&RefCell<Vec<dynamics::Trajectory>>>,
+    ) -> (f64, Vec<f64>, Vec<f64>) {
         if values[i].kd.is_none() {
             return (0.0, vec![], vec![]);
         }
         let parent = &self.structure.parent;
         let pre = pre_transforms(parent, i, transforms, self.ev.len());
         let desc = tree::descendants(parent, i);
-        physics_prior_kinematic(self.ev, i, &values[i], xk, &pre, &desc, values, transforms, self.model)
+        physics_prior_kinematic(self.ev, i, &values[i], xk, &pre, &desc, values, transforms, self.model, trajectories)
     }
 
     /// `part_physics(..).0`, simulated in `f64` ([`physics_prior_value`]).
@@ -911,37 +946,6 @@ impl<'a> Density<'a> {
 /// [`crate::model::rigid`]), which enter only the likelihood.
 fn physics_dims(s: &PartSlots) -> Vec<usize> {
     (s.xi..s.xi + s.np).filter(|&k| k != s.xi + 3 && k != s.xi + 4).collect()
-}
-
-/// The forward differences of the simulated trajectories of [`NonCentred`]: each perturbed
-/// latent `idx` of a part `j`, as `(j, idx, parts)` with the parts among `candidates` whose
-/// physics it enters — `j`'s own (kinematic parameters), its ancestors' (its mass, centre of
-/// mass and inertia ride in their subtree) and, when it is movable, its descendants' (its
-/// displacement moves their joints). A part's own kinodynamics are exact already (dual
-/// numbers), so only the others' physics is differenced for them (its mass).
-fn physics_differences(parent: &[usize], slots: &[PartSlots], candidates: &[usize]) -> Vec<(usize, usize, Vec<usize>)> {
-    let mut out = Vec::new();
-    for (j, s) in slots.iter().enumerate() {
-        let desc = tree::descendants(parent, j);
-        // A rigid part's displacement is the identity whatever its parameters, so they reach a
-        // descendant's physics only through a movable part; its centre of mass still loads its
-        // ancestors.
-        let affected: Vec<usize> =
-            candidates.iter().copied().filter(|&i| i == j || (s.joint.movable() && desc.contains(&i)) || tree::descendants(parent, i).contains(&j)).collect();
-        if affected.is_empty() {
-            continue;
-        }
-        for idx in physics_dims(s) {
-            out.push((j, idx, affected.clone()));
-        }
-        if let Some((k, d)) = s.kd {
-            let others: Vec<usize> = affected.iter().copied().filter(|&i| i != j).collect();
-            if !others.is_empty() {
-                out.extend((k..k + d).map(|idx| (j, idx, others.clone())));
-            }
-        }
-    }
-    out
 }
 
 /// The forward differences of [`Density::log_density`]'s physics: what a part `j`'s parameters
@@ -1000,7 +1004,7 @@ pub fn window_starts(ev: &Evidence) -> Vec<usize> {
 /// Non-centred coordinates of dynamic mode: the same density as [`Density`] in coordinates `y`
 /// where every movable part's coordinate at a window frame after the window's first is
 /// `q_t = Psi_t + sigma_d u_t`, `Psi` the simulated trajectory of that window
-/// ([`dynamics::window_trajectory`]) and `sigma_d` the part's deviation scale; the sampler moves
+/// ([`dynamics::window_psi`]) and `sigma_d` the part's deviation scale; the sampler moves
 /// `u_t` in place of `q_t` (all other latents are unchanged, among them every window's first
 /// coordinate, from which `Psi` starts).
 ///
@@ -1015,9 +1019,10 @@ pub fn window_starts(ev: &Evidence) -> Vec<usize> {
 ///
 /// The map `y -> x` is triangular with `sigma_d` on the diagonal of each `u_t` and 1 elsewhere,
 /// so `log p_y(y) = log p(x(y)) + n log sigma_d` (`n` non-centred coordinates of the part).
-/// Gradient: the chain rule through `Psi` by dual numbers (own kinodynamics, `q_{w,0}`) and by
-/// forward differences (kinematic parameters, a descendant's mass; [`Density`]'s physics takes
-/// a part's own kinematic parameters by dual numbers since stop 89, this map does not yet).
+/// Gradient: the chain rule through `Psi` with the derivatives of the physics prior's own dual
+/// simulation at `x` (a part's kinodynamics, `q_{w,0}` and its own kinematic parameters,
+/// [`kinematic_dims`]; one simulation a window) and forward differences for what another part's
+/// parameters do to it ([`cross_physics_differences`]).
 pub struct NonCentred<'a> {
     density: Density<'a>,
     /// Per part: `(window, frame index in the window, grid frame)` of each non-centred coordinate.
@@ -1026,7 +1031,8 @@ pub struct NonCentred<'a> {
 
 /// A part's simulated trajectories per window and its deviation scale at some coordinates.
 struct Simulated {
-    trajectories: Vec<dynamics::Trajectory>,
+    /// `Psi` per window, at the window's frames.
+    trajectories: Vec<Vec<f64>>,
     deviation: f64,
 }
 
@@ -1095,7 +1101,7 @@ impl<'a> NonCentred<'a> {
                     .iter()
                     .map(|win| {
                         let wj = window_joint(ev, i, &values[i], win, &pre, &desc, &values, &transforms, model);
-                        dynamics::window_trajectory(&wj.view(ev.effects[i]), win, values[i].q[win.frames[0]], xi, &model.dynamics)
+                        dynamics::window_psi(&wj.view(ev.effects[i]), win, values[i].q[win.frames[0]], xi, &model.dynamics)
                     })
                     .collect();
                 let deviation = dynamics::decode::<f64>(d.slots[i].joint, xi, &ev.effects[i], &model.dynamics).deviation;
@@ -1133,7 +1139,7 @@ impl<'a> NonCentred<'a> {
         for (i, s) in sim.iter().enumerate() {
             let (Some(s), Some(o)) = (s, self.density.slots[i].q) else { continue };
             for &(w, k, t) in &self.frames[i] {
-                out[o + t] = f(s.trajectories[w].psi[k], s.deviation, v[o + t]);
+                out[o + t] = f(s.trajectories[w][k], s.deviation, v[o + t]);
             }
         }
         out
@@ -1152,7 +1158,10 @@ impl<'a> NonCentred<'a> {
         let sim = self.simulate(y, &params, &all);
         let x = self.apply(y, &sim, |psi, dev, u| psi + dev * u);
         let mut g = vec![0.0; d.dim];
-        let mut lp = d.log_density(&x, &mut g);
+        // `Psi`'s derivatives come from the physics prior's own dual simulation at `x` (the same
+        // trajectories: they start from the windows' first coordinates, which `x` and `y` share).
+        let sinks: Vec<RefCell<Vec<dynamics::Trajectory>>> = (0..n).map(|_| RefCell::new(Vec::new())).collect();
+        let mut lp = d.log_density_with(&x, &mut g, Some(&sinks));
         grad.copy_from_slice(&g);
         if !lp.is_finite() {
             return lp;
@@ -1160,13 +1169,23 @@ impl<'a> NonCentred<'a> {
         let log_sd = d.model.dynamics.deviation_log_sd;
         for (i, s) in sim.iter().enumerate() {
             let (Some(s), Some(o), Some((k, nk))) = (s, d.slots[i].q, d.slots[i].kd) else { continue };
+            let trajectories = sinks[i].borrow();
+            if trajectories.len() != d.ev.windows.len() {
+                // The physics prior simulates every window of a part with non-centred frames;
+                // anything else is a bug, reported as a non-finite density, not a wrong gradient.
+                return f64::NAN;
+            }
+            let (xi, dims) = (d.slots[i].xi, kinematic_dims(d.slots[i].joint));
             let ddev = s.deviation * log_sd;
             for &(w, kk, t) in &self.frames[i] {
                 let (gt, u) = (g[o + t], y[o + t]);
-                let tr = &s.trajectories[w];
+                let tr = &trajectories[w];
                 grad[o + t] = gt * s.deviation;
                 for j in 0..nk {
                     grad[k + j] += gt * tr.d_xi[kk][j];
+                }
+                for (m, &j) in dims.iter().enumerate() {
+                    grad[xi + j] += gt * tr.d_kinematic[kk][m];
                 }
                 grad[k + 3] += gt * u * ddev;
                 grad[o + d.ev.windows[w].frames[0]] += gt * tr.d_q0[kk];
@@ -1176,11 +1195,16 @@ impl<'a> NonCentred<'a> {
             lp += m * s.deviation.ln();
             grad[k + 3] += m * log_sd;
         }
-        // Psi through the kinematic parameters and a descendant's mass: forward differences.
+        // Psi through another part's parameters (a parent's axis, a descendant's mass and centre
+        // of mass): forward differences, simulated in `f64` ([`cross_physics_differences`]).
         let parent = &d.structure.parent;
         let with_frames: Vec<usize> = (0..n).filter(|&i| !self.frames[i].is_empty()).collect();
+        let cross = cross_physics_differences(parent, &d.slots).into_iter().filter_map(|(j, idx, parts)| {
+            let parts: Vec<usize> = parts.into_iter().filter(|i| with_frames.contains(i)).collect();
+            (!parts.is_empty()).then_some((j, idx, parts))
+        });
         let mut yp = y.to_vec();
-        for (j, idx, parts) in physics_differences(parent, &d.slots, &with_frames) {
+        for (j, idx, parts) in cross {
             yp[idx] = y[idx] + FD_STEP;
             let mut pp = params.clone();
             pp[j] = d.params(&yp, j);
@@ -1189,7 +1213,7 @@ impl<'a> NonCentred<'a> {
             for &i in &parts {
                 let (Some(a), Some(b), Some(o)) = (&sim[i], &moved[i], d.slots[i].q) else { continue };
                 for &(w, kk, t) in &self.frames[i] {
-                    acc += g[o + t] * (b.trajectories[w].psi[kk] - a.trajectories[w].psi[kk]);
+                    acc += g[o + t] * (b.trajectories[w][kk] - a.trajectories[w][kk]);
                 }
             }
             grad[idx] += acc / FD_STEP;

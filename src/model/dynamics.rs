@@ -519,7 +519,8 @@ fn simulate_scaled<T: Real>(
 }
 
 /// The simulated trajectory `Psi` of one joint in one window at the window's grid frames, with
-/// its derivatives (for non-centred coordinates, [`crate::model::density::NonCentred`]).
+/// its derivatives, as the physics prior's dual simulation gives them (for non-centred
+/// coordinates, [`crate::model::density::NonCentred`]).
 #[derive(Debug, Clone)]
 pub struct Trajectory {
     /// `Psi_k` at frame `k` of the window \[m of path\]; `psi[0] = q_{w,0}` (also when nothing
@@ -529,37 +530,17 @@ pub struct Trajectory {
     pub d_xi: Vec<Vec<f64>>,
     /// `d Psi_k / d q_{w,0}`.
     pub d_q0: Vec<f64>,
+    /// `d Psi_k / d x_j` over the joint's own kinematic parameters that its physics depends on
+    /// (`[k][m]`, `m` over [`crate::model::density::kinematic_dims`]); empty when not computed.
+    pub d_kinematic: Vec<Vec<f64>>,
 }
 
-/// [`Trajectory`] of `jw` in `win` from `q0` under standardised kinodynamics `xi` (dual numbers
-/// through [`simulate_window`], as [`window_prior`]).
-pub fn window_trajectory(jw: &JointInWindow<'_>, win: &WindowEvidence, q0: f64, xi: &[f64], cfg: &DynamicsConfig) -> Trajectory {
-    match xi.len() {
-        0..=4 => window_trajectory_n::<5>(jw, win, q0, xi, cfg),
-        5..=6 => window_trajectory_n::<7>(jw, win, q0, xi, cfg),
-        7..=10 => window_trajectory_n::<11>(jw, win, q0, xi, cfg),
-        n => panic!("{n} kinodynamic parameters: at most 10 (4 base, 6 of effects)"),
-    }
-}
-
-fn window_trajectory_n<const N: usize>(jw: &JointInWindow<'_>, win: &WindowEvidence, q0: f64, xi: &[f64], cfg: &DynamicsConfig) -> Trajectory {
-    type D<const N: usize> = DualSVec64<N>;
-    let nk = xi.len();
-    let q0_slot = N - 1;
-    let xd: Vec<D<N>> = xi.iter().enumerate().map(|(j, &x)| D::<N>::from_re(x).derivative(j)).collect();
-    let kp = decode(jw.joint.joint, &xd, &jw.effects, cfg);
-    let q0d = D::<N>::from_re(q0).derivative(q0_slot);
-    let traj = simulate_window(jw, win, q0d, &kp, cfg);
-    let k_len = win.frames.len();
-    let mut out = Trajectory { psi: Vec::with_capacity(k_len), d_xi: Vec::with_capacity(k_len), d_q0: Vec::with_capacity(k_len) };
-    for k in 0..k_len {
-        let psi = if k == 0 { q0d } else { traj.as_ref().map_or(q0d, |tr| tr[win.frame_substep[k]]) };
-        let eps = psi.eps.unwrap_generic(nalgebra::Const::<N>, nalgebra::U1);
-        out.psi.push(psi.re);
-        out.d_xi.push((0..nk).map(|j| eps[j]).collect());
-        out.d_q0.push(eps[q0_slot]);
-    }
-    out
+/// `Psi_k` of [`Trajectory`] alone, simulated in `f64` ([`crate::model::density::NonCentred`]'s
+/// map and its forward differences).
+pub fn window_psi(jw: &JointInWindow<'_>, win: &WindowEvidence, q0: f64, xi: &[f64], cfg: &DynamicsConfig) -> Vec<f64> {
+    let kp = decode(jw.joint.joint, xi, &jw.effects, cfg);
+    let traj = simulate_window(jw, win, q0, &kp, cfg);
+    (0..win.frames.len()).map(|k| if k == 0 { q0 } else { traj.as_ref().map_or(q0, |tr| tr[win.frame_substep[k]]) }).collect()
 }
 
 /// Observed joint coordinates' variances for [`window_prior`].
@@ -620,32 +601,13 @@ pub fn robust_window_prior_value(jw: &JointInWindow<'_>, win: &WindowEvidence, q
     robust_mix(win, q, observed, cfg, velocity_sd_mps, None, (lp, vec![], vec![], lp)).0
 }
 
-/// The terms of [`window_prior`] with the joint's geometry `geom` of the scalar type (its own
-/// kinematic parameters' derivatives carried through the simulation), at decoded kinodynamics
-/// `kp` and start `q0`: the log density, its direct derivative with respect to each window
-/// frame's coordinate (the first left 0: it enters through the simulation, the dual part), and
-/// the share of the value of the frames flagged in `skip`.
-#[allow(clippy::too_many_arguments)]
-pub fn window_terms_in<T: Real>(
-    jw: &JointInWindow<'_>,
-    geom: &WindowGeometry<T>,
-    win: &WindowEvidence,
-    q: &[f64],
-    observed: Option<&Observed>,
-    kp: &KinoParams<T>,
-    q0: T,
-    cfg: &DynamicsConfig,
-    skip: Option<&[bool]>,
-) -> (T, Vec<f64>, f64) {
-    let traj = simulate_joint_in(jw, geom, win, q0, T::from(0.0), kp, cfg);
-    window_terms(traj, win, q, observed, kp, q0, cfg, skip)
-}
-
 /// The terms of [`window_prior`] for the simulated trajectory `traj` (`None`: nothing moves the
 /// joint) at decoded kinodynamics `kp` and start `q0`, in any scalar type (dual numbers for the
-/// gradient, `f64` for the value alone): as [`window_terms_in`].
+/// gradient, `f64` for the value alone): the log density, its direct derivative with respect to
+/// each window frame's coordinate (the first left 0: it enters through the simulation, the dual
+/// part), and the share of the value of the frames flagged in `skip`.
 #[allow(clippy::too_many_arguments)]
-fn window_terms<T: Real>(
+pub(crate) fn window_terms<T: Real>(
     traj: Option<Vec<T>>,
     win: &WindowEvidence,
     q: &[f64],
