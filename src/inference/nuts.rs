@@ -170,11 +170,12 @@ impl LogpError for NonFinite {
 /// The model's density as nuts-rs's `CpuLogpFunc`, in coordinates preconditioned by SVI's
 /// Laplace fits: each part's kinodynamic block is `xi = m + L z` with `m` and `L L^T` the
 /// guide's mean and covariance of it, and the sampler moves `z` (a constant linear map, so no
-/// Jacobian term). Why: damping and friction trade off along a long, narrow ridge (a push moves
-/// as far with more damping and less friction); with the diagonal mass matrix nuts-rs adapts, the
-/// step size shrank to the ridge's width and the drawer bag's damping had a bulk ESS of 4 from
-/// 400 draws (step size 0.13-0.18), the other parameters 200-400. A dense mass matrix on those
-/// few coordinates is this map.
+/// Jacobian term); with `nuts.shear`, `m + L z` is the sheared block of [`Block`], which bends
+/// this map along the ridge. Why: damping and friction trade off along a long, narrow ridge (a
+/// push moves as far with more damping and less friction); with the diagonal mass matrix nuts-rs
+/// adapts, the step size shrank to the ridge's width and the drawer bag's damping had a bulk ESS
+/// of 4 from 400 draws (step size 0.13-0.18), the other parameters 200-400. A dense mass matrix
+/// on those few coordinates is the linear map; the ridge's curvature is the shear's.
 ///
 /// The kinodynamic blocks are those of the [`NonCentred`] coordinates `y`; the sampler's `z` maps
 /// to `y` by the blocks and `y` to the model's `x` by [`NonCentred::to_model`].
@@ -184,8 +185,9 @@ struct Logp<'a> {
     blocks: Vec<Block>,
 }
 
-/// The preconditioner of one kinodynamic block at offset `offset` of the coordinates: the block is
-/// `xi = shear(m + L z)`, `m` and `L L^T` the guide's mean and covariance of the sheared block.
+/// The preconditioner of one kinodynamic block at offset `offset` of the coordinates: the sampler's
+/// `z` gives the sheared block `m + L z` (`m` and `L L^T` the guide's mean and covariance of the
+/// sheared block, to first order), and the model's block `xi` is that block unsheared.
 ///
 /// The shear follows the ridge on which damping trades for Coulomb friction: a push's
 /// resisting force is `b v + mu` (revolute: torques), so along the ridge the damping falls
