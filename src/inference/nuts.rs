@@ -83,8 +83,8 @@ pub struct NutsConfig {
     /// ([`NonCentred`], why there); false samples them as they are (the default: with `shear`,
     /// faster on two of the three shipped dynamic bags measured, README "BOM-NUTS", stop 90).
     pub non_centred: bool,
-    /// Dynamic mode: precondition each movable part's damping and friction with the shear of
-    /// [`Block`], which follows the curved ridge on which they trade (on since stop 90).
+    /// Dynamic mode: precondition each movable part's damping and friction with a shear (the
+    /// private `Block`) that follows the curved ridge on which they trade (on since stop 90).
     pub shear: bool,
     /// Structures sampled: those holding this much of the SVI posterior's mass, at most
     /// `max_structures`.

@@ -1022,7 +1022,7 @@ pub fn window_starts(ev: &Evidence) -> Vec<usize> {
 /// Gradient: the chain rule through `Psi` with the derivatives of the physics prior's own dual
 /// simulation at `x` (a part's kinodynamics, `q_{w,0}` and its own kinematic parameters,
 /// [`kinematic_dims`]; one simulation a window) and forward differences for what another part's
-/// parameters do to it ([`cross_physics_differences`]).
+/// parameters do to it (`cross_physics_differences`).
 pub struct NonCentred<'a> {
     density: Density<'a>,
     /// Per part: `(window, frame index in the window, grid frame)` of each non-centred coordinate.
