@@ -446,8 +446,7 @@ fn preconditioner(density: &Density<'_>, guide: &GuideState, model: &ModelConfig
             if kd.dim != d || !m.iter().chain(l.iter()).all(|v| v.is_finite()) || !(0..d).all(|k| l[(k, k)] > 0.0) {
                 continue;
             }
-            let movable = matches!(s.joint, JointType::Prismatic | JointType::Revolute);
-            let sheared = (shear && movable && d >= 2)
+            let sheared = (shear && s.joint.movable() && d >= 2)
                 .then(|| {
                     let sigma = &l * l.transpose();
                     let beta = sigma[(0, 1)] / sigma[(1, 1)];
@@ -458,10 +457,11 @@ fn preconditioner(density: &Density<'_>, guide: &GuideState, model: &ModelConfig
                     (beta.is_finite() && s_mu > 0.0).then(|| (chol.l(), (beta, s_mu, m[1])))
                 })
                 .flatten();
-            out.push(match sheared {
-                Some((l, shear)) => Block { offset: o, m, l, shear: Some(shear) },
-                None => Block { offset: o, m, l, shear: None },
-            });
+            let (l, shear) = match sheared {
+                Some((l, shear)) => (l, Some(shear)),
+                None => (l, None),
+            };
+            out.push(Block { offset: o, m, l, shear });
         }
     }
     out

@@ -511,11 +511,9 @@ fn window_prior_kinematic_n<const N: usize>(args: KinematicArgs<'_, '_>) -> (f64
     let traj = dynamics::simulate_joint_in(jw, &geom, win, q0, Dn::<N>::from(0.0), &kp, &model.dynamics);
     if let Some(sink) = sink {
         let k_len = win.frames.len();
-        let mut out = dynamics::Trajectory { psi: Vec::with_capacity(k_len), d_xi: Vec::with_capacity(k_len), d_q0: Vec::with_capacity(k_len), d_kinematic: Vec::with_capacity(k_len) };
+        let mut out = dynamics::Trajectory { d_xi: Vec::with_capacity(k_len), d_q0: Vec::with_capacity(k_len), d_kinematic: Vec::with_capacity(k_len) };
         for k in 0..k_len {
-            let psi = if k == 0 { q0 } else { traj.as_ref().map_or(q0, |tr| tr[win.frame_substep[k]]) };
-            let eps = psi.eps.unwrap_generic(nalgebra::Const::<N>, nalgebra::U1);
-            out.psi.push(psi.re);
+            let eps = dynamics::psi_at(traj.as_ref(), win, k, q0).eps.unwrap_generic(nalgebra::Const::<N>, nalgebra::U1);
             out.d_xi.push((0..nk).map(|j| eps[j]).collect());
             out.d_q0.push(eps[q0_slot]);
             out.d_kinematic.push((0..dims.len()).map(|m| eps[nk + 1 + m]).collect());

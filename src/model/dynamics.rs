@@ -518,29 +518,36 @@ fn simulate_scaled<T: Real>(
     Some(traj)
 }
 
-/// The simulated trajectory `Psi` of one joint in one window at the window's grid frames, with
-/// its derivatives, as the physics prior's dual simulation gives them (for non-centred
-/// coordinates, [`crate::model::density::NonCentred`]).
+/// The derivatives of the simulated trajectory `Psi` of one joint in one window at the window's
+/// grid frames (`Psi` itself: [`window_psi`]), as the physics prior's dual simulation gives them
+/// (for non-centred coordinates, [`crate::model::density::NonCentred`]).
 #[derive(Debug, Clone)]
 pub struct Trajectory {
-    /// `Psi_k` at frame `k` of the window \[m of path\]; `psi[0] = q_{w,0}` (also when nothing
-    /// moves the joint: then every entry is `q_{w,0}`).
-    pub psi: Vec<f64>,
     /// `d Psi_k / d xi_j` (`[k][j]`, `j` over the kinodynamic parameters).
     pub d_xi: Vec<Vec<f64>>,
     /// `d Psi_k / d q_{w,0}`.
     pub d_q0: Vec<f64>,
     /// `d Psi_k / d x_j` over the joint's own kinematic parameters that its physics depends on
-    /// (`[k][m]`, `m` over [`crate::model::density::kinematic_dims`]); empty when not computed.
+    /// (`[k][m]`, `m` over [`crate::model::density::kinematic_dims`]).
     pub d_kinematic: Vec<Vec<f64>>,
 }
 
-/// `Psi_k` of [`Trajectory`] alone, simulated in `f64` ([`crate::model::density::NonCentred`]'s
-/// map and its forward differences).
+/// `Psi_k`, the simulation `traj` (`None`: nothing moves the joint) at frame `k` of `win`, started
+/// at `q0`: `q0` at the window's first frame and wherever nothing moves the joint.
+pub(crate) fn psi_at<T: Real>(traj: Option<&Vec<T>>, win: &WindowEvidence, k: usize, q0: T) -> T {
+    if k == 0 {
+        q0
+    } else {
+        traj.map_or(q0, |tr| tr[win.frame_substep[k]])
+    }
+}
+
+/// `Psi_k` at every frame of `win` \[m of path\], simulated in `f64`
+/// ([`crate::model::density::NonCentred`]'s map and its forward differences).
 pub fn window_psi(jw: &JointInWindow<'_>, win: &WindowEvidence, q0: f64, xi: &[f64], cfg: &DynamicsConfig) -> Vec<f64> {
     let kp = decode(jw.joint.joint, xi, &jw.effects, cfg);
     let traj = simulate_window(jw, win, q0, &kp, cfg);
-    (0..win.frames.len()).map(|k| if k == 0 { q0 } else { traj.as_ref().map_or(q0, |tr| tr[win.frame_substep[k]]) }).collect()
+    (0..win.frames.len()).map(|k| psi_at(traj.as_ref(), win, k, q0)).collect()
 }
 
 /// Observed joint coordinates' variances for [`window_prior`].
@@ -626,8 +633,7 @@ pub(crate) fn window_terms<T: Real>(
     // The skipped frames' share of the value (their terms are leaves: each integrates to 1).
     let mut skipped_value = 0.0;
     for (k, &t) in frames.iter().enumerate().skip(1) {
-        let psi = traj.as_ref().map_or(q0, |tr| tr[win.frame_substep[k]]);
-        let d = T::from(q[t]) - psi;
+        let d = T::from(q[t]) - psi_at(traj.as_ref(), win, k, q0);
         let term = match observed.map(|o| (o.var[t], o.nu)) {
             Some((r2, obs_nu)) if r2 > 0.0 => {
                 let var = dev2 + r2;
