@@ -251,15 +251,48 @@ fn dynamic_physics_gradient_matches_finite_differences() {
     assert!(bad.is_empty(), "microwave_spring, every effect: gradient vs central differences (index, gradient, fd): {bad:?}");
 }
 
+/// The drawer hung on the cabinet body, which does not move (SVI's most probable tree), and the
+/// drawer hung on the fixed frame collapse to one structure and have one density, value and
+/// gradient; hanging the body on the drawer instead is another structure with another density.
+#[test]
+fn structures_on_a_static_part_share_their_density() {
+    let (cfg, ev, fitted) = drawer();
+    let on_body = map_structure(&fitted);
+    let body = on_body.types.iter().position(|t| *t == bom::model::JointType::Rigid).expect("the body");
+    let drawer = on_body.types.iter().position(|t| t.movable()).expect("the drawer");
+    assert_eq!(on_body.parent[drawer], body + 1, "SVI hangs the drawer on the body: {on_body:?}");
+    let mut on_world = on_body.clone();
+    on_world.parent[drawer] = 0;
+    assert_eq!(on_body.static_collapsed(), on_world.static_collapsed());
+    let (a, b) = (Density::new(&ev, &cfg.model, on_body.clone()), Density::new(&ev, &cfg.model, on_world.clone()));
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(31);
+    let x = nuts::start_from_guide(&a, &fitted.guide, &mut rng);
+    let (mut ga, mut gb) = (vec![0.0; a.dim()], vec![0.0; b.dim()]);
+    let (la, lb) = (a.log_density(&x, &mut ga), b.log_density(&x, &mut gb));
+    assert!(la.is_finite() && (la - lb).abs() <= 1e-9 * la.abs(), "{la} vs {lb}");
+    let worst = ga.iter().zip(&gb).map(|(u, v)| (u - v).abs() / u.abs().max(1.0)).fold(0.0, f64::max);
+    assert!(worst <= 1e-9, "gradients differ by {worst} (relative)");
+    let mut body_on_drawer = on_world.clone();
+    body_on_drawer.parent[body] = drawer + 1;
+    assert_ne!(body_on_drawer.static_collapsed(), on_world.static_collapsed());
+    let c = Density::new(&ev, &cfg.model, body_on_drawer);
+    let lc = c.log_density(&x, &mut gb);
+    assert!((lc - la).abs() > 1.0, "a body carried by the drawer moves with it: {lc} vs {la}");
+}
+
 /// BOM-NUTS on the structure SVI found, through the same density: its draws keep SVI's
 /// prismatic axis (within 3 degrees) and report finite diagnostics; the structures it sampled
-/// start with SVI's most probable one.
+/// start with SVI's most probable one. The second, the drawer on the fixed frame instead of the
+/// body, has the first's density: the first's draws stand for it, counted once.
 #[test]
 fn nuts_samples_the_model_svi_fitted() {
     let (cfg, ev, fitted) = drawer();
-    let ncfg = NutsConfig { chains: 2, tune: 150, draws: 100, max_draws: 100, max_structures: 1, ..NutsConfig::default() };
+    let ncfg = NutsConfig { chains: 2, tune: 150, draws: 100, max_draws: 100, max_structures: 2, ..NutsConfig::default() };
     let (post, report) = nuts::sample(&ev, &cfg.model, &fitted, &ncfg).expect("NUTS runs");
     assert_eq!(report.structures[0].0, map_structure(&fitted));
+    assert_eq!(report.structures.len(), 2, "{report:?}");
+    assert_eq!(report.same_density_as, vec![None, Some(0)], "{report:?}");
+    assert_eq!(report.total_draws, 200, "one structure's draws: {report:?}");
     assert_eq!(report.chains, 2);
     assert!(report.r_hat_max.is_finite() && report.ess_bulk_min.is_finite(), "{report:?}");
     let drawer = fitted.posterior.joints.iter().position(|j| j.map_type.movable()).expect("a movable part");

@@ -7,8 +7,11 @@
 //!
 //! NUTS samples continuous latents only, so the discrete ones — the tree and the joint types —
 //! are conditioned on: the structures that hold at least `structure_mass` of the SVI posterior's
-//! mass (at most `max_structures`), each sampled separately, weighed by the SVI guide's
-//! probability of the structure. That weight is the ELBO weighing: the guide's discrete logits
+//! mass (at most `max_structures`), each weighed by the SVI guide's probability of the structure
+//! and sampled separately, except one with the density of a structure sampled before it (parts
+//! hung from a static part instead of the fixed frame, [`Structure::static_collapsed`]; checked
+//! on the density's value and gradient at three points), for which that one's draws stand. The
+//! weight is the ELBO weighing: the guide's discrete logits
 //! sit at `log p(choice) + conditional ELBO` (natural-gradient fixed point, [`super::svi`]), so
 //! structures are compared by SVI's lower bound on their marginal likelihood, not by a bridge
 //! sampling estimate from NUTS's own draws. Chains start from draws of SVI's guide, run in
@@ -151,6 +154,9 @@ pub struct SamplerReport {
     pub divergences: u64,
     /// Structures sampled, their weights, and the SVI mass they hold together.
     pub structures: Vec<(Structure, f64)>,
+    /// Per structure: the index of an earlier structure with the same density whose draws stand
+    /// for it ([`Structure::static_collapsed`]), none when it was sampled itself.
+    pub same_density_as: Vec<Option<usize>>,
     pub structure_mass: f64,
     pub runtime_s: f64,
     /// One line per failed diagnostic (empty when all hold).
@@ -706,14 +712,28 @@ pub fn sample(ev: &Evidence, model: &ModelConfig, svi: &Fitted, cfg: &NutsConfig
         ess_bulk_min: f64::NAN,
         divergences: 0,
         structures: structs.clone(),
+        same_density_as: vec![None; structs.len()],
         structure_mass: held,
         runtime_s: 0.0,
         warnings: vec![],
     };
     let mut posterior = svi.posterior.clone();
     let (mut r_max, mut ess_min) = (1.0f64, f64::INFINITY);
+    // The structures sampled so far, static-collapsed, by index.
+    let mut sampled: Vec<(usize, Structure)> = Vec::new();
     for (si, (structure, _)) in structs.iter().enumerate() {
         let density = Density::new(ev, model, structure.clone());
+        let collapsed = structure.static_collapsed();
+        if let Some((sj, _)) = sampled.iter().find(|(_, c)| *c == collapsed) {
+            // Checked, not only assumed: a model term that read a part's parent would show here.
+            if same_density(&density, &Density::new(ev, model, structs[*sj].0.clone()), &svi.guide, cfg.seed) {
+                tracing::info!("NUTS: structure {si} has structure {sj}'s density (parts on a static part): structure {sj}'s draws stand for it");
+                report.same_density_as[si] = Some(*sj);
+                continue;
+            }
+            tracing::debug!("NUTS: structure {si} and structure {sj} collapse alike but their densities differ; sampled apart");
+        }
+        sampled.push((si, collapsed));
         // Reported scalars per chain and draw, axis directions flipped onto SVI's side.
         let reference: Vec<Option<nalgebra::Vector3<f64>>> = posterior.joints.iter().map(|j| j.axis.as_ref().map(|a| a.direction)).collect();
         let diagnose = |d: &[Vec<Vec<f64>>]| diagnostics(&density, d, &reference, model, (si, cfg));
@@ -785,6 +805,22 @@ fn diagnostics(density: &Density<'_>, draws: &[Vec<Vec<f64>>], reference: &[Opti
         ess_min = ess_min.min(ess);
     }
     (r_max, ess_min)
+}
+
+/// Whether densities `a` and `b` (one layout: the same joint types) agree in value and gradient,
+/// to a relative 1e-9, at three draws of the guide (seeded by `seed`).
+fn same_density(a: &Density<'_>, b: &Density<'_>, guide: &GuideState, seed: u64) -> bool {
+    if a.dim() != b.dim() || a.slots() != b.slots() {
+        return false;
+    }
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5eed);
+    let close = |u: f64, v: f64| (u - v).abs() <= 1e-9 * u.abs().max(v.abs()).max(1.0);
+    let (mut ga, mut gb) = (vec![0.0; a.dim()], vec![0.0; b.dim()]);
+    (0..3).all(|_| {
+        let x = start_from_guide(a, guide, &mut rng);
+        let (la, lb) = (a.log_density(&x, &mut ga), b.log_density(&x, &mut gb));
+        la.is_finite() && close(la, lb) && ga.iter().zip(&gb).all(|(&u, &v)| close(u, v))
+    })
 }
 
 /// Whether an R-hat meets the configured limit (NaN never does).

@@ -628,6 +628,37 @@ pub struct Structure {
     pub types: Vec<JointType>,
 }
 
+impl Structure {
+    /// The structure with every part that hangs from a *static* part — one joined to the fixed
+    /// frame by rigid joints only — hung from the fixed frame instead. Structures with the same
+    /// static-collapsed form have the same [`Density`], term by term: a rigid joint's
+    /// displacement is the identity, so a static part's transform is the fixed frame's at every
+    /// frame; a static part has no kinodynamics, so it loads nothing and carries no physics; the
+    /// likelihood counted once per subtree of the fixed frame is the same sum of the parts'
+    /// likelihoods; and no other term reads a part's parent (a revolute joint's reach prior
+    /// reads its own part only). A cabinet body that does not move and a drawer in it give two
+    /// such structures (the drawer on the body, or on the fixed frame), between which the SVI
+    /// posterior splits by its tree prior and its guides.
+    pub fn static_collapsed(&self) -> Structure {
+        let n = self.parent.len();
+        // A node is static when it is the fixed frame or a rigid part whose parent is static.
+        let is_static = |mut node: usize| {
+            for _ in 0..=n {
+                if node == 0 {
+                    return true;
+                }
+                if self.types[node - 1] != JointType::Rigid {
+                    return false;
+                }
+                node = self.parent[node - 1];
+            }
+            false
+        };
+        let parent = self.parent.iter().map(|&p| if is_static(p) { 0 } else { p }).collect();
+        Structure { parent, types: self.types.clone() }
+    }
+}
+
 /// Where one part's latents live in the flat vector of a [`Density`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PartSlots {
@@ -1242,6 +1273,20 @@ mod tests {
         assert!(still > moved, "a still joint is more probable: {still:.1} vs {moved:.1}");
         let gaussian = value(0.009, 0.0);
         assert!(gaussian < -1e5, "the Gaussian's cost, for contrast: {gaussian:.1}");
+    }
+
+    /// Static parts are the fixed frame and rigid chains to it: what hangs from them hangs from the
+    /// fixed frame; what hangs from a movable part, or from a rigid part on one, stays.
+    #[test]
+    fn parts_on_static_parts_hang_from_the_fixed_frame() {
+        use JointType::{Prismatic, Revolute, Rigid};
+        // 1 body rigid on the frame, 2 shelf rigid on the body, 3 drawer on the shelf, 4 lid on
+        // the drawer, 5 handle rigid on the drawer, 6 knob rigid on the handle.
+        let s = Structure { parent: vec![0, 1, 2, 3, 3, 5], types: vec![Rigid, Rigid, Prismatic, Revolute, Rigid, Rigid] };
+        let c = s.static_collapsed();
+        assert_eq!(c.parent, vec![0, 0, 0, 3, 3, 5]);
+        assert_eq!(c.types, s.types);
+        assert_eq!(c.static_collapsed(), c);
     }
 
     /// The rest term's gradients (both coordinates, and the deviation's standardised parameter

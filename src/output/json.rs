@@ -128,6 +128,11 @@ pub struct StructureJson {
     /// Part label -> joint type.
     pub types: BTreeMap<String, String>,
     pub weight: f64,
+    /// Beyond the contract: the index in `structures` of an earlier structure with the same
+    /// density (parts hung from a static part instead of the fixed frame), whose draws stand for
+    /// this one; absent when this one was sampled.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub same_density_as: Option<usize>,
 }
 
 fn sampler_json(run: &Run, s: &SamplerReport) -> SamplerJson {
@@ -145,10 +150,12 @@ fn sampler_json(run: &Run, s: &SamplerReport) -> SamplerJson {
         structures: s
             .structures
             .iter()
-            .map(|(st, w)| StructureJson {
+            .enumerate()
+            .map(|(k, (st, w))| StructureJson {
                 parents: st.parent.iter().enumerate().map(|(i, &p)| (labels.get(i).copied().unwrap_or(0).to_string(), label(p))).collect(),
                 types: st.types.iter().enumerate().map(|(i, t)| (labels.get(i).copied().unwrap_or(0).to_string(), t.name().to_string())).collect(),
                 weight: *w,
+                same_density_as: s.same_density_as.get(k).copied().flatten(),
             })
             .collect(),
         warnings: s.warnings.clone(),
