@@ -629,8 +629,8 @@ pub struct Structure {
 }
 
 impl Structure {
-    /// The structure with every part that hangs from a *static* part — one joined to the fixed
-    /// frame by rigid joints only — hung from the fixed frame instead. Structures with the same
+    /// The structure (a tree) with every part that hangs from a *static* part — one joined to
+    /// the fixed frame by rigid joints only — hung from the fixed frame instead. Structures with the same
     /// static-collapsed form have the same [`Density`], term by term: a rigid joint's
     /// displacement is the identity, so a static part's transform is the fixed frame's at every
     /// frame; a static part has no kinodynamics, so it loads nothing and carries no physics; the
@@ -640,20 +640,9 @@ impl Structure {
     /// such structures (the drawer on the body, or on the fixed frame), between which the SVI
     /// posterior splits by its tree prior and its guides.
     pub fn static_collapsed(&self) -> Structure {
-        let n = self.parent.len();
-        // A node is static when it is the fixed frame or a rigid part whose parent is static.
-        let is_static = |mut node: usize| {
-            for _ in 0..=n {
-                if node == 0 {
-                    return true;
-                }
-                if self.types[node - 1] != JointType::Rigid {
-                    return false;
-                }
-                node = self.parent[node - 1];
-            }
-            false
-        };
+        // A node is static when it is the fixed frame, or a rigid part with only rigid ancestors.
+        let rigid = |k: usize| self.types[k] == JointType::Rigid;
+        let is_static = |node: usize| node == 0 || (rigid(node - 1) && tree::ancestors(&self.parent, node - 1).into_iter().all(rigid));
         let parent = self.parent.iter().map(|&p| if is_static(p) { 0 } else { p }).collect();
         Structure { parent, types: self.types.clone() }
     }
