@@ -53,7 +53,7 @@ use super::svi::Fitted;
 use super::{Kinodynamics, Posterior};
 use crate::model::density::{Density, NonCentred, Structure};
 use crate::model::likelihood::Evidence;
-use crate::model::{dynamics, JointParams, JointType, ModelConfig};
+use crate::model::{dynamics, tree, JointParams, JointType, ModelConfig};
 
 /// NUTS settings (`nuts` section of the config).
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -86,6 +86,12 @@ pub struct NutsConfig {
     /// ([`NonCentred`], why there); false samples them as they are (the default: with `shear`,
     /// faster on two of the three shipped dynamic bags measured, README "BOM-NUTS", stop 90).
     pub non_centred: bool,
+    /// Dynamic mode: sample the coordinates in windows partially non-centred, each with its own
+    /// centring `lambda_t = 1 - (s_t / sigma_d)^2` from SVI's guide (`s_t` the guide's sd of the
+    /// coordinate, `sigma_d` the deviation scale at the guide's mean; [`NonCentred::partial`]):
+    /// centred where the observations pin a coordinate more tightly than the physics, non-centred
+    /// where the physics does. Overrides `non_centred`.
+    pub partial_centring: bool,
     /// Dynamic mode: precondition each movable part's damping and friction with a shear (the
     /// private `Block`) that follows the curved ridge on which they trade (on since stop 90).
     pub shear: bool,
@@ -113,6 +119,7 @@ impl Default for NutsConfig {
             target_accept: 0.95,
             maxdepth: 10,
             non_centred: false,
+            partial_centring: false,
             shear: true,
             structure_mass: 0.99,
             max_structures: 4,
@@ -358,7 +365,7 @@ pub fn structures(fitted: &Posterior, mass: f64, max: usize) -> (Vec<(Structure,
         next.truncate(4096);
         partial = next;
     }
-    let valid: Vec<(Structure, f64)> = partial.into_iter().filter(|(p, _, _)| is_tree(p)).map(|(parent, types, w)| (Structure { parent, types }, w)).collect();
+    let valid: Vec<(Structure, f64)> = partial.into_iter().filter(|(p, _, _)| tree::is_tree(p)).map(|(parent, types, w)| (Structure { parent, types }, w)).collect();
     let total: f64 = valid.iter().map(|s| s.1).sum();
     let mut out = Vec::new();
     let mut held = 0.0;
@@ -374,25 +381,6 @@ pub fn structures(fitted: &Posterior, mass: f64, max: usize) -> (Vec<(Structure,
         s.1 /= kept;
     }
     (out, if total > 0.0 { held / total } else { 0.0 })
-}
-
-/// Whether `parent` (0 the fixed frame, `j + 1` part `j`) is a tree: every part reaches the
-/// fixed frame, and no part is its own parent.
-fn is_tree(parent: &[usize]) -> bool {
-    let n = parent.len();
-    (0..n).all(|i| {
-        let mut node = parent[i];
-        for _ in 0..=n {
-            if node == 0 {
-                return true;
-            }
-            if node == i + 1 {
-                return false;
-            }
-            node = parent[node - 1];
-        }
-        false
-    })
 }
 
 /// Draws of one structure's chains, `draws[chain][k]` (model coordinates), their divergent
@@ -473,6 +461,40 @@ fn preconditioner(density: &Density<'_>, guide: &GuideState, model: &ModelConfig
     out
 }
 
+/// The coordinates the sampler moves (`nuts.partial_centring`, `nuts.non_centred`).
+fn coordinates<'d>(density: Density<'d>, guide: &GuideState, model: &ModelConfig, cfg: &NutsConfig) -> NonCentred<'d> {
+    if cfg.partial_centring {
+        let lambda = centring_from_guide(&density, guide, model);
+        NonCentred::partial(density, |i, t| lambda[i].get(t).copied())
+    } else {
+        NonCentred::new(density, cfg.non_centred)
+    }
+}
+
+/// Each part's centring of its window coordinates for [`NonCentred::partial`], `lambda[i][t] =
+/// 1 - (s_t / sigma_d)^2` clamped to `[0, 1]`: `s_t` the guide's sd of part `i`'s coordinate at
+/// grid frame `t` (mean-field: its conditional posterior sd), `sigma_d` the deviation scale at the
+/// guide's kinodynamic mean. Empty for a part without both (0, non-centred, by default).
+fn centring_from_guide(density: &Density<'_>, guide: &GuideState, model: &ModelConfig) -> Vec<Vec<f64>> {
+    let ev = density.evidence();
+    let theta = &guide.theta;
+    density
+        .slots()
+        .iter()
+        .enumerate()
+        .map(|(i, s)| {
+            let b = guide.layout.blocks[i][s.joint.index()];
+            let (Some((_, d)), Some((_, qs)), Some(kd)) = (s.kd, b.q, b.kd) else { return Vec::new() };
+            if kd.dim != d {
+                return Vec::new();
+            }
+            let mean = kd.mean(theta);
+            let sd = dynamics::decode::<f64>(s.joint, mean.as_slice(), &ev.effects[i], &model.dynamics).deviation;
+            (0..ev.len()).map(|t| (1.0 - (theta[qs + t].exp() / sd).powi(2)).clamp(0.0, 1.0)).collect()
+        })
+        .collect()
+}
+
 /// What one chain sends back after a round: its new sampling draws (model coordinates) and the
 /// divergent transitions among them.
 struct Round {
@@ -539,10 +561,14 @@ fn run_chains<S: Settings>(settings: S, job: &Job<'_>, diagnose: &Diagnose<'_>) 
                     let mut rng = ChaCha8Rng::seed_from_u64(seed.wrapping_add(1000 * c as u64));
                     let blocks = preconditioner(&density, guide, model, cfg.shear);
                     let x0 = start_from_guide(&density, guide, &mut rng);
-                    let logp = Logp { blocks: blocks.clone(), density: NonCentred::new(density, cfg.non_centred) };
+                    let logp = Logp { blocks: blocks.clone(), density: coordinates(density, guide, model, cfg) };
+                    if c == 0 && cfg.partial_centring {
+                        let (low, all) = logp.density.centring_summary();
+                        tracing::debug!("NUTS: {low} of {all} window coordinates mostly non-centred (lambda < 0.5)");
+                    }
                     let z0 = logp.to_sampler(&logp.density.from_model(&x0));
                     // The chain owns `logp`; draws are mapped back to the model by a view of its own.
-                    let map = NonCentred::new(Density::new(ev, model, structure.clone()), cfg.non_centred);
+                    let map = coordinates(Density::new(ev, model, structure.clone()), guide, model, cfg);
                     let math = CpuMath::new(logp);
                     let mut nrng = NutsRng::seed_from_u64(seed.wrapping_add(7919 * c as u64 + 1));
                     let mut chain = match settings.new_chain(c as u64, math, &mut nrng).map_err(|e| e.to_string()).and_then(|mut ch| {
@@ -557,12 +583,32 @@ fn run_chains<S: Settings>(settings: S, job: &Job<'_>, diagnose: &Diagnose<'_>) 
                     };
                     let mut n = settings.hint_num_tune() as u64 + round;
                     let (mut drawn, mut divergent, mut all_steps, mut step_size) = (0u64, 0u64, 0u64, f64::NAN);
+                    // Warm-up's own cost, for the debug line at its end (where dynamic-mode time goes).
+                    let (mut tune_steps, mut tune_deep, mut tuned) = (0u64, 0u64, 0u64);
+                    let mut tune_tenths: Vec<(u64, u64)> = vec![(0, 0); 10];
                     loop {
                         let mut out = Vec::with_capacity(round as usize);
                         let mut divergences = 0u64;
                         for _ in 0..n {
                             match chain.draw() {
                                 Ok((draw, info)) => {
+                                    if info.tuning {
+                                        tuned += 1;
+                                        tune_steps += info.num_steps;
+                                        let deep = (info.num_steps + 1 >= 1u64 << cfg.maxdepth.min(62)) as u64;
+                                        tune_deep += deep;
+                                        let k = ((tuned - 1) * 10 / cfg.tune.max(1)).min(9) as usize;
+                                        tune_tenths[k].0 += info.num_steps;
+                                        tune_tenths[k].1 += deep;
+                                    } else if drawn == 0 && out.is_empty() {
+                                        tracing::debug!(
+                                            "NUTS chain {c}: warm-up {tuned} draws in {:.1} s, {:.1} leapfrog steps per draw, {tune_deep} at the depth limit, step size {:.3}",
+                                            started.elapsed().as_secs_f64(),
+                                            tune_steps as f64 / tuned.max(1) as f64,
+                                            info.step_size
+                                        );
+                                        tracing::debug!("NUTS chain {c}: warm-up tenths (leapfrog steps, draws at the depth limit): {tune_tenths:?}");
+                                    }
                                     if !info.tuning {
                                         divergences += info.diverging as u64;
                                         all_steps += info.num_steps;
@@ -921,12 +967,5 @@ mod tests {
             let fd = (value(&a) - value(&c)) / (2.0 * h);
             assert!((fd - g[k]).abs() < 1e-6 * (1.0 + fd.abs()), "coordinate {k}: {} vs {fd}", g[k]);
         }
-    }
-
-    #[test]
-    fn trees_are_told_from_cycles() {
-        assert!(is_tree(&[0, 1, 2]));
-        assert!(!is_tree(&[2, 1]));
-        assert!(!is_tree(&[1]));
     }
 }

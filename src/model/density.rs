@@ -1036,15 +1036,17 @@ pub fn window_starts(ev: &Evidence) -> Vec<usize> {
 /// *Statistical Science* 22(1), 2007; Betancourt & Girolami 2015).
 ///
 /// The map `y -> x` is triangular with `sigma_d` on the diagonal of each `u_t` and 1 elsewhere,
-/// so `log p_y(y) = log p(x(y)) + n log sigma_d` (`n` non-centred coordinates of the part).
+/// so `log p_y(y) = log p(x(y)) + n log sigma_d` (`n` non-centred coordinates of the part;
+/// partially non-centred, [`NonCentred::partial`], `sigma_d^(1 - lambda_t)` on the diagonal).
 /// Gradient: the chain rule through `Psi` with the derivatives of the physics prior's own dual
 /// simulation at `x` (a part's kinodynamics, `q_{w,0}` and its own kinematic parameters,
 /// [`kinematic_dims`]; one simulation a window) and forward differences for what another part's
 /// parameters do to it (`cross_physics_differences`).
 pub struct NonCentred<'a> {
     density: Density<'a>,
-    /// Per part: `(window, frame index in the window, grid frame)` of each non-centred coordinate.
-    frames: Vec<Vec<(usize, usize, usize)>>,
+    /// Per part: `(window, frame index in the window, grid frame, lambda)` of each (partially)
+    /// non-centred coordinate; `lambda` in `[0, 1)` is its centring ([`NonCentred::partial`]).
+    frames: Vec<Vec<(usize, usize, usize, f64)>>,
 }
 
 /// A part's simulated trajectories per window and its deviation scale at some coordinates.
@@ -1059,18 +1061,35 @@ impl<'a> NonCentred<'a> {
     /// identity: `y = x`). A grid frame is non-centred for one window at most, and never when it
     /// starts a window.
     pub fn new(density: Density<'a>, enabled: bool) -> Self {
+        Self::partial(density, |_, _| (!enabled).then_some(1.0))
+    }
+
+    /// Partially non-centred coordinates (Papaspiliopoulos, Roberts & Sköld 2007, §3;
+    /// Gorinova, Moore & Hoffman, *Automatic reparameterisation of probabilistic programs*, ICML
+    /// 2020, eq. 3): the sampler moves `y_t = lambda Psi_t + (q_t - Psi_t) / sigma_d^(1 - lambda)`,
+    /// so `q_t = Psi_t + sigma_d^(1 - lambda) (y_t - lambda Psi_t)`. `lambda = 1` is the centred
+    /// coordinate, `0` the non-centred `u_t`. `centring(part, grid frame)` gives `lambda` (clamped
+    /// to `[0, 1]`; `None` is 0). For a Gaussian coordinate whose observations have variance
+    /// `tau^2`, the posterior is uncorrelated with `sigma_d` at `lambda = sigma_d^2 / (sigma_d^2 +
+    /// tau^2)`, which is `1 - s^2 / sigma_d^2` with `s` the coordinate's conditional posterior sd —
+    /// what a mean-field guide fits (`inference::nuts` takes it from SVI's).
+    pub fn partial(density: Density<'a>, centring: impl Fn(usize, usize) -> Option<f64>) -> Self {
         let ev = density.evidence();
         let starts: Vec<usize> = ev.windows.iter().map(|w| w.frames[0]).collect();
         let frames = density
             .slots()
             .iter()
-            .map(|s| {
-                let mut out: Vec<(usize, usize, usize)> = Vec::new();
-                if enabled && s.kd.is_some() && s.q.is_some() {
+            .enumerate()
+            .map(|(i, s)| {
+                let mut out: Vec<(usize, usize, usize, f64)> = Vec::new();
+                if s.kd.is_some() && s.q.is_some() {
                     for (w, win) in ev.windows.iter().enumerate() {
                         for (k, &t) in win.frames.iter().enumerate().skip(1) {
-                            if !starts.contains(&t) && !out.iter().any(|&(_, _, u)| u == t) {
-                                out.push((w, k, t));
+                            let lambda = centring(i, t).unwrap_or(0.0);
+                            let lambda = if lambda.is_finite() { lambda.clamp(0.0, 1.0) } else { 0.0 };
+                            // A fully centred coordinate is the model's own: left out of the map.
+                            if lambda < 1.0 && !starts.contains(&t) && !out.iter().any(|&(_, _, u, _)| u == t) {
+                                out.push((w, k, t, lambda));
                             }
                         }
                     }
@@ -1079,6 +1098,13 @@ impl<'a> NonCentred<'a> {
             })
             .collect();
         NonCentred { density, frames }
+    }
+
+    /// How many of the (partially) non-centred coordinates have a centring `lambda` below 0.5, and
+    /// how many there are (for the sampler's debug line).
+    pub fn centring_summary(&self) -> (usize, usize) {
+        let all = self.frames.iter().flatten();
+        (all.clone().filter(|f| f.3 < 0.5).count(), all.count())
     }
 
     pub fn density(&self) -> &Density<'a> {
@@ -1139,7 +1165,7 @@ impl<'a> NonCentred<'a> {
         }
         let all: Vec<usize> = (0..self.frames.len()).collect();
         let sim = self.simulate(y, &self.all_params(y), &all);
-        self.apply(y, &sim, |psi, dev, u| psi + dev * u)
+        self.apply(y, &sim, |psi, dev, lambda, u| psi + dev.powf(1.0 - lambda) * (u - lambda * psi))
     }
 
     /// Non-centred coordinates of model coordinates `x`.
@@ -1149,15 +1175,16 @@ impl<'a> NonCentred<'a> {
         }
         let all: Vec<usize> = (0..self.frames.len()).collect();
         let sim = self.simulate(x, &self.all_params(x), &all);
-        self.apply(x, &sim, |psi, dev, q| (q - psi) / dev)
+        self.apply(x, &sim, |psi, dev, lambda, q| lambda * psi + (q - psi) / dev.powf(1.0 - lambda))
     }
 
-    fn apply(&self, v: &[f64], sim: &[Option<Simulated>], f: impl Fn(f64, f64, f64) -> f64) -> Vec<f64> {
+    /// `v` with every (partially) non-centred coordinate replaced by `f(Psi_t, sigma_d, lambda, v_t)`.
+    fn apply(&self, v: &[f64], sim: &[Option<Simulated>], f: impl Fn(f64, f64, f64, f64) -> f64) -> Vec<f64> {
         let mut out = v.to_vec();
         for (i, s) in sim.iter().enumerate() {
             let (Some(s), Some(o)) = (s, self.density.slots[i].q) else { continue };
-            for &(w, k, t) in &self.frames[i] {
-                out[o + t] = f(s.trajectories[w][k], s.deviation, v[o + t]);
+            for &(w, k, t, lambda) in &self.frames[i] {
+                out[o + t] = f(s.trajectories[w][k], s.deviation, lambda, v[o + t]);
             }
         }
         out
@@ -1174,7 +1201,7 @@ impl<'a> NonCentred<'a> {
         let all: Vec<usize> = (0..n).collect();
         let params = self.all_params(y);
         let sim = self.simulate(y, &params, &all);
-        let x = self.apply(y, &sim, |psi, dev, u| psi + dev * u);
+        let x = self.apply(y, &sim, |psi, dev, lambda, u| psi + dev.powf(1.0 - lambda) * (u - lambda * psi));
         let mut g = vec![0.0; d.dim];
         // `Psi`'s derivatives come from the physics prior's own dual simulation at `x` (the same
         // trajectories: they start from the windows' first coordinates, which `x` and `y` share).
@@ -1194,24 +1221,28 @@ impl<'a> NonCentred<'a> {
                 return f64::NAN;
             }
             let (xi, dims) = (d.slots[i].xi, kinematic_dims(d.slots[i].joint));
-            let ddev = s.deviation * log_sd;
-            for &(w, kk, t) in &self.frames[i] {
+            // q_t = Psi_t + a (y_t - lambda Psi_t), a = sigma_d^(1 - lambda): dq/dy = a,
+            // dq/dPsi = 1 - lambda a, dq/d xi_d = (1 - lambda) log_sd a (y_t - lambda Psi_t).
+            let mut jacobian = 0.0;
+            for &(w, kk, t, lambda) in &self.frames[i] {
                 let (gt, u) = (g[o + t], y[o + t]);
                 let tr = &trajectories[w];
-                grad[o + t] = gt * s.deviation;
+                let a = s.deviation.powf(1.0 - lambda);
+                let gp = gt * (1.0 - lambda * a);
+                grad[o + t] = gt * a;
                 for j in 0..nk {
-                    grad[k + j] += gt * tr.d_xi[kk][j];
+                    grad[k + j] += gp * tr.d_xi[kk][j];
                 }
                 for (m, &j) in dims.iter().enumerate() {
-                    grad[xi + j] += gt * tr.d_kinematic[kk][m];
+                    grad[xi + j] += gp * tr.d_kinematic[kk][m];
                 }
-                grad[k + 3] += gt * u * ddev;
-                grad[o + d.ev.windows[w].frames[0]] += gt * tr.d_q0[kk];
+                grad[k + 3] += gt * (u - lambda * s.trajectories[w][kk]) * (1.0 - lambda) * log_sd * a;
+                grad[o + d.ev.windows[w].frames[0]] += gp * tr.d_q0[kk];
+                jacobian += 1.0 - lambda;
             }
-            // The Jacobian's log determinant, n log sigma_d.
-            let m = self.frames[i].len() as f64;
-            lp += m * s.deviation.ln();
-            grad[k + 3] += m * log_sd;
+            // The Jacobian's log determinant, sum of (1 - lambda) log sigma_d.
+            lp += jacobian * s.deviation.ln();
+            grad[k + 3] += jacobian * log_sd;
         }
         // Psi through another part's parameters (a parent's axis, a descendant's mass and centre
         // of mass): forward differences, simulated in `f64` ([`cross_physics_differences`]).
@@ -1230,8 +1261,9 @@ impl<'a> NonCentred<'a> {
             let mut acc = 0.0;
             for &i in &parts {
                 let (Some(a), Some(b), Some(o)) = (&sim[i], &moved[i], d.slots[i].q) else { continue };
-                for &(w, kk, t) in &self.frames[i] {
-                    acc += g[o + t] * (b.trajectories[w][kk] - a.trajectories[w][kk]);
+                for &(w, kk, t, lambda) in &self.frames[i] {
+                    let c = 1.0 - lambda * a.deviation.powf(1.0 - lambda);
+                    acc += g[o + t] * c * (b.trajectories[w][kk] - a.trajectories[w][kk]);
                 }
             }
             grad[idx] += acc / FD_STEP;

@@ -358,6 +358,15 @@ mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
 
+    /// A cycle, a part its own parent or a parent out of range is no tree.
+    #[test]
+    fn trees_are_told_from_cycles() {
+        assert!(is_tree(&[0, 1, 2]));
+        assert!(!is_tree(&[2, 1]));
+        assert!(!is_tree(&[1]));
+        assert!(!is_tree(&[0, 7]));
+    }
+
     /// Ancestors come nearest first and stop at the fixed frame; a cycle (not a tree) ends.
     #[test]
     fn ancestors_walk_up_to_the_fixed_frame() {
