@@ -461,13 +461,12 @@ fn preconditioner(density: &Density<'_>, guide: &GuideState, model: &ModelConfig
     out
 }
 
-/// The coordinates the sampler moves (`nuts.partial_centring`, `nuts.non_centred`).
-fn coordinates<'d>(density: Density<'d>, guide: &GuideState, model: &ModelConfig, cfg: &NutsConfig) -> NonCentred<'d> {
-    if cfg.partial_centring {
-        let lambda = centring_from_guide(&density, guide, model);
-        NonCentred::partial(density, |i, t| lambda[i].get(t).copied())
-    } else {
-        NonCentred::new(density, cfg.non_centred)
+/// The coordinates the sampler moves: partially non-centred by `centring` (from
+/// [`centring_from_guide`], `nuts.partial_centring`), else as `nuts.non_centred` says.
+fn coordinates<'d>(density: Density<'d>, centring: Option<&[Vec<f64>]>, non_centred: bool) -> NonCentred<'d> {
+    match centring {
+        Some(lambda) => NonCentred::partial(density, |i, t| lambda[i].get(t).copied()),
+        None => NonCentred::new(density, non_centred),
     }
 }
 
@@ -544,6 +543,9 @@ fn run_chains<S: Settings>(settings: S, job: &Job<'_>, diagnose: &Diagnose<'_>) 
     let chains = cfg.chains.max(1);
     let round = cfg.draws.max(1);
     let most = cfg.max_draws.max(round);
+    // One centring for all chains: it depends on the guide only.
+    let centring = cfg.partial_centring.then(|| centring_from_guide(&Density::new(ev, model, structure.clone()), guide, model));
+    let centring = centring.as_deref();
     std::thread::scope(|scope| {
         let (tx, rx) = mpsc::channel::<(usize, Result<Round, String>)>();
         let mut commands = Vec::with_capacity(chains);
@@ -561,14 +563,14 @@ fn run_chains<S: Settings>(settings: S, job: &Job<'_>, diagnose: &Diagnose<'_>) 
                     let mut rng = ChaCha8Rng::seed_from_u64(seed.wrapping_add(1000 * c as u64));
                     let blocks = preconditioner(&density, guide, model, cfg.shear);
                     let x0 = start_from_guide(&density, guide, &mut rng);
-                    let logp = Logp { blocks: blocks.clone(), density: coordinates(density, guide, model, cfg) };
+                    let logp = Logp { blocks: blocks.clone(), density: coordinates(density, centring, cfg.non_centred) };
                     if c == 0 && cfg.partial_centring {
                         let (low, all) = logp.density.centring_summary();
                         tracing::debug!("NUTS: {low} of {all} window coordinates mostly non-centred (lambda < 0.5)");
                     }
                     let z0 = logp.to_sampler(&logp.density.from_model(&x0));
                     // The chain owns `logp`; draws are mapped back to the model by a view of its own.
-                    let map = coordinates(Density::new(ev, model, structure.clone()), guide, model, cfg);
+                    let map = coordinates(Density::new(ev, model, structure.clone()), centring, cfg.non_centred);
                     let math = CpuMath::new(logp);
                     let mut nrng = NutsRng::seed_from_u64(seed.wrapping_add(7919 * c as u64 + 1));
                     let mut chain = match settings.new_chain(c as u64, math, &mut nrng).map_err(|e| e.to_string()).and_then(|mut ch| {

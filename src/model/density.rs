@@ -1049,6 +1049,12 @@ pub struct NonCentred<'a> {
     frames: Vec<Vec<(usize, usize, usize, f64)>>,
 }
 
+/// A window coordinate `q_t = Psi_t + sigma_d^(1 - lambda) (y_t - lambda Psi_t)` from the
+/// sampler's `y_t` ([`NonCentred::partial`]; `lambda = 0` is the non-centred `Psi_t + sigma_d u_t`).
+fn model_coordinate(psi: f64, dev: f64, lambda: f64, y: f64) -> f64 {
+    psi + dev.powf(1.0 - lambda) * (y - lambda * psi)
+}
+
 /// A part's simulated trajectories per window and its deviation scale at some coordinates.
 struct Simulated {
     /// `Psi` per window, at the window's frames.
@@ -1165,7 +1171,7 @@ impl<'a> NonCentred<'a> {
         }
         let all: Vec<usize> = (0..self.frames.len()).collect();
         let sim = self.simulate(y, &self.all_params(y), &all);
-        self.apply(y, &sim, |psi, dev, lambda, u| psi + dev.powf(1.0 - lambda) * (u - lambda * psi))
+        self.apply(y, &sim, model_coordinate)
     }
 
     /// Non-centred coordinates of model coordinates `x`.
@@ -1201,7 +1207,7 @@ impl<'a> NonCentred<'a> {
         let all: Vec<usize> = (0..n).collect();
         let params = self.all_params(y);
         let sim = self.simulate(y, &params, &all);
-        let x = self.apply(y, &sim, |psi, dev, lambda, u| psi + dev.powf(1.0 - lambda) * (u - lambda * psi));
+        let x = self.apply(y, &sim, model_coordinate);
         let mut g = vec![0.0; d.dim];
         // `Psi`'s derivatives come from the physics prior's own dual simulation at `x` (the same
         // trajectories: they start from the windows' first coordinates, which `x` and `y` share).
