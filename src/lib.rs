@@ -22,6 +22,10 @@
 //! }
 //! ```
 
+// Numeric code: `!(x > 0.0)` is meant — it also rejects NaN, which `x <= 0.0` would let through;
+// and index loops run over several parallel arrays (coordinates, frames, parts) at once.
+#![allow(clippy::neg_cmp_op_on_partial_ord, clippy::needless_range_loop)]
+
 pub mod config;
 pub mod criticism;
 pub mod diagnostics;

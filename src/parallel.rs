@@ -36,7 +36,7 @@ pub fn map<R: Send>(threads: usize, jobs: usize, f: impl Fn(usize) -> R + Sync) 
         }
     };
     let mut done: Vec<(usize, R)> = std::thread::scope(|s| {
-        let others: Vec<_> = (1..threads).map(|_| s.spawn(&work)).collect();
+        let others: Vec<_> = (1..threads).map(|_| s.spawn(work)).collect();
         let mut done = work();
         for h in others {
             done.extend(h.join().unwrap_or_else(|e| std::panic::resume_unwind(e)));

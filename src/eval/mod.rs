@@ -338,8 +338,8 @@ pub fn render(m: &Metrics) -> String {
     let mut s = String::new();
     let _ = writeln!(
         s,
-        "  {:>5} {:>10} {:>10} {:>6} {:>7} {:>9} {:>10} {:>10} {:>9} {:>9} {:>9}  {}",
-        "part", "true", "estimated", "parent", "P-MSE", "axis[deg]", "offset[m]", "at pt [m]", "damp.err", "fric.err", "correct", "in 90% interval (damping, friction, axis)"
+        "  {:>5} {:>10} {:>10} {:>6} {:>7} {:>9} {:>10} {:>10} {:>9} {:>9} {:>9}  in 90% interval (damping, friction, axis)",
+        "part", "true", "estimated", "parent", "P-MSE", "axis[deg]", "offset[m]", "at pt [m]", "damp.err", "fric.err", "correct"
     );
     for p in &m.per_part {
         let _ = writeln!(

@@ -379,7 +379,7 @@ mod tests {
             let (mut a, mut b) = (theta.clone(), theta.clone());
             a[p] += 1e-6;
             b[p] -= 1e-6;
-            let fd = (kd.neg_kl(&a, &mut vec![0.0; 9]) - kd.neg_kl(&b, &mut vec![0.0; 9])) / 2e-6;
+            let fd = (kd.neg_kl(&a, &mut [0.0; 9]) - kd.neg_kl(&b, &mut [0.0; 9])) / 2e-6;
             assert!((fd - g[p]).abs() < 1e-6, "param {p}: {fd} vs {}", g[p]);
         }
         // d/dtheta of f(xi(theta)) = a . xi for a fixed eps.

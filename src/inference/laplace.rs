@@ -291,7 +291,7 @@ pub fn mean_field_gap(guide_precision: &[f64], prior_diag: &[f64], edges: &[(usi
     let sum_ln_diag: f64 = d.iter().filter(|v| **v > 0.0).map(|v| v.ln()).sum();
     // Off-diagonal entries, parallel edges merged.
     let mut merged: Vec<(usize, usize, f64)> = edges.iter().filter(|e| e.0 < n && e.1 < n && e.0 != e.1 && e.2 > 0.0).map(|&(u, v, w)| (u.min(v), u.max(v), -w)).collect();
-    merged.sort_by(|x, y| (x.0, x.1).cmp(&(y.0, y.1)));
+    merged.sort_by_key(|x| (x.0, x.1));
     merged.dedup_by(|x, y| {
         let same = x.0 == y.0 && x.1 == y.1;
         if same {

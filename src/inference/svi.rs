@@ -884,7 +884,7 @@ pub fn fit(ev: &Evidence, model: &ModelConfig, cfg: &SviConfig, warm: Option<&Wa
     let same = |a: &structure::InitialStructure, b: &structure::InitialStructure| a.parent == b.parent && a.best_types() == b.best_types();
     let diverged = warm.is_some_and(|w| w.per_frame.is_some());
     let two = diverged || !same(&per_frame, &bic);
-    let runner_up = bic.runner_up().filter(|r| !same(r, &bic) && !(two && same(r, &per_frame)));
+    let runner_up = bic.runner_up().filter(|r| !(same(r, &bic) || two && same(r, &per_frame)));
     tracing::debug!(
         "start trees (parent nodes, score): BIC {:?} {:.1}, per-frame {:?} {:.1}, runner-up {}",
         bic.parent,

@@ -344,10 +344,13 @@ fn window_evidence(times: &[f64], frames: Vec<usize>, rest: Vec<usize>, rest_bef
     Some(WindowEvidence { frames, rest, rest_before, frame_substep, pushed, continues: false, h, force, torque, point })
 }
 
+/// Force, torque and point of application per integration step ([`wrench_on_steps`]).
+pub type WrenchSteps = (Vec<Vector3<f64>>, Vec<Vector3<f64>>, Vec<Vector3<f64>>);
+
 /// The measured wrench on `n` integration steps `t0 + k h` \[s\]: force \[N\], torque \[N·m\] and
 /// point of application \[m\], fixed frame, linearly interpolated between the stamps of
 /// `wrenches` (sorted by stamp), zero outside them (the point then stays at the last sample's).
-pub fn wrench_on_steps(wrenches: &[WrenchSample], t0: f64, n: usize, h: f64) -> (Vec<Vector3<f64>>, Vec<Vector3<f64>>, Vec<Vector3<f64>>) {
+pub fn wrench_on_steps(wrenches: &[WrenchSample], t0: f64, n: usize, h: f64) -> WrenchSteps {
     let (mut force, mut torque, mut point) = (Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n));
     if wrenches.is_empty() {
         return (vec![Vector3::zeros(); n], vec![Vector3::zeros(); n], vec![Vector3::zeros(); n]);

@@ -396,7 +396,7 @@ mod tests {
         assert_eq!(log_prior(1), 0.0);
         assert!((log_prior(3) - (-2.0 * 4f64.ln())).abs() < 1e-12);
         // With equal weights the contact prior is the uniform one: Z = (n + 1)^(n - 1).
-        let flat = vec![vec![0.0; 4], vec![0.0; 4], vec![0.0; 4]];
+        let flat = [vec![0.0; 4], vec![0.0; 4], vec![0.0; 4]];
         let flat: Vec<Vec<f64>> = flat.iter().enumerate().map(|(i, r)| r.iter().enumerate().map(|(j, v)| if j == i + 1 { f64::NEG_INFINITY } else { *v }).collect()).collect();
         assert!((log_partition(&flat) + log_prior(3)).abs() < 1e-9);
         // Two parts: the trees are (0,0), (0,1), (2,0) in (parent of 1, parent of 2) notation.
