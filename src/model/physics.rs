@@ -20,10 +20,10 @@
 //! velocity — with the joint forces (damping, friction, springs) evaluated *implicitly* at the
 //! new velocity and position:
 //! `M (v+ - v) = h (tau_ext - c - b v+ - mu tanh(v+ / v_s) - k (q + h v+ - rest))`, solved by
-//! Newton's method (the friction term is monotone in `v+`, so the root is unique). A light door with strong Coulomb friction has a friction time constant
-//! `I v_s / mu` of a fraction of a millisecond; an explicit velocity update would need steps that
-//! short to stay stable, and a linearised one chatters across zero velocity; this one is stable
-//! for any step.
+//! Newton's method (the friction term is monotone in `v+`, so the root is unique). A light door
+//! with strong Coulomb friction has a friction time constant `I v_s / mu` of a fraction of a
+//! millisecond; an explicit velocity update would need steps that short to stay stable, and a
+//! linearised one chatters across zero velocity; this one is stable for any step.
 //!
 //! [`JointDynamics`] is the same physics for one joint whose parent does not move and whose
 //! subtree is locked (its generalised inertia is then constant): what the model uses per joint
