@@ -546,7 +546,9 @@ fn run_chains<S: Settings>(settings: S, job: &Job<'_>, diagnose: &Diagnose<'_>) 
     let chains = cfg.chains.max(1);
     let round = cfg.draws.max(1);
     let most = cfg.max_draws.max(round);
-    // One centring for all chains: it depends on the guide only.
+    // One preconditioner and one centring for all chains: they depend on the guide only.
+    let blocks = preconditioner(&Density::new(ev, model, structure.clone()), guide, model, cfg.shear);
+    let blocks = blocks.as_slice();
     let centring = cfg.partial_centring.then(|| centring_from_guide(&Density::new(ev, model, structure.clone()), guide, model));
     let centring = centring.as_deref();
     std::thread::scope(|scope| {
@@ -564,9 +566,8 @@ fn run_chains<S: Settings>(settings: S, job: &Job<'_>, diagnose: &Diagnose<'_>) 
                     let started = Instant::now();
                     let density = Density::new(ev, model, structure.clone());
                     let mut rng = ChaCha8Rng::seed_from_u64(seed.wrapping_add(1000 * c as u64));
-                    let blocks = preconditioner(&density, guide, model, cfg.shear);
                     let x0 = start_from_guide(&density, guide, &mut rng);
-                    let logp = Logp { blocks: blocks.clone(), density: coordinates(density, centring, cfg.non_centred) };
+                    let logp = Logp { blocks: blocks.to_vec(), density: coordinates(density, centring, cfg.non_centred) };
                     if c == 0 && cfg.partial_centring {
                         let (low, all) = logp.density.centring_summary();
                         tracing::debug!("NUTS: {low} of {all} window coordinates mostly non-centred (lambda < 0.5)");
@@ -618,7 +619,7 @@ fn run_chains<S: Settings>(settings: S, job: &Job<'_>, diagnose: &Diagnose<'_>) 
                                         divergences += info.diverging as u64;
                                         all_steps += info.num_steps;
                                         step_size = info.step_size;
-                                        out.push(map.to_model(&to_model(&blocks, &draw)));
+                                        out.push(map.to_model(&to_model(blocks, &draw)));
                                     }
                                 }
                                 Err(e) => {
