@@ -668,8 +668,9 @@ fn first_frame_score(y0: f64, r2: f64, nu: f64, q0: f64) -> f64 {
 /// [`fitted_start`] of the displacement simulated from the first frame's observation at
 /// standardised parameters `xi`.
 ///
-/// With [`DynamicsConfig::fit_window_start`] (off by default: README "Generalization", stop 94) the collapsed physics prior of a window
-/// (observed coordinates `y`, [`Observed`]) is `y_0 ~ t_nu(q0, r_0^2)` and
+/// With [`DynamicsConfig::fit_window_start`] (off by default: README "Generalization", stop 94)
+/// the collapsed physics prior of a window (observed coordinates `y`, [`Observed`]) is
+/// `y_0 ~ t_nu(q0, r_0^2)` and
 /// `y_k ~ t_nu(q0 + delta_k, sigma_d^2 + r_k^2)` with the start `q0` at its maximum, where
 /// `delta_k = Psi_k - y_0` is the displacement simulated from the first observation. `delta` does
 /// not depend on where the simulation starts for the base model (damping, friction and inertia act
