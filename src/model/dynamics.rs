@@ -598,18 +598,18 @@ fn window_prior_n<const N: usize>(
     let (traj, q0, start) = match fitted(observed, cfg) {
         Some(o) => {
             let re: Option<Vec<f64>> = traj.as_ref().map(|t| t.iter().map(|v| v.re).collect());
-            let start = fitted_start(win, q, o, re.as_deref(), (kp.deviation * kp.deviation).re);
+            let start = fitted_start(win, q, o, re.as_ref(), (kp.deviation * kp.deviation).re);
             (shifted(traj, y0, start), D::<N>::from_re(start), Some(start))
         }
         None => (traj, y0, None),
     };
     let (mut ll, mut gq, skipped_value) = window_terms(traj, win, q, observed, &kp, q0, cfg, skip);
-    let t0 = win.frames[0];
     if let (Some(o), Some(start)) = (observed, start) {
         // The first frame's own observation; its derivative through the fitted start is 0 at the
         // optimum (envelope theorem), so the direct one is all.
-        ll += first_frame_term(q[t0], o.var.get(t0).copied().unwrap_or(0.0), o.nu, q0);
-        gq[0] += first_frame_score(q[t0], o.var.get(t0).copied().unwrap_or(0.0), o.nu, start);
+        let (y0, r2) = first_observation(win, q, o);
+        ll += first_frame_term(y0, r2, o.nu, q0);
+        gq[0] += if r2 > 0.0 { student_score(y0 - start, r2, o.nu) } else { 0.0 };
     }
     let eps = ll.eps.unwrap_generic(nalgebra::Const::<N>, nalgebra::U1);
     let gx: Vec<f64> = (0..nk).map(|j| eps[j]).collect();
@@ -626,10 +626,9 @@ pub fn window_prior_value(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64
     let traj = simulate_window(jw, win, y0, &kp, cfg);
     match fitted(observed, cfg) {
         Some(o) => {
-            let start = fitted_start(win, q, o, traj.as_deref(), kp.deviation * kp.deviation);
-            let t0 = win.frames[0];
-            window_terms(shifted(traj, y0, start), win, q, observed, &kp, start, cfg, None).0
-                + first_frame_term(q[t0], o.var.get(t0).copied().unwrap_or(0.0), o.nu, start)
+            let start = fitted_start(win, q, o, traj.as_ref(), kp.deviation * kp.deviation);
+            let (y0_obs, r2) = first_observation(win, q, o);
+            window_terms(shifted(traj, y0, start), win, q, observed, &kp, start, cfg, None).0 + first_frame_term(y0_obs, r2, o.nu, start)
         }
         None => window_terms(traj, win, q, observed, &kp, y0, cfg, None).0,
     }
@@ -659,9 +658,10 @@ fn first_frame_term<T: Real>(y0: f64, r2: f64, nu: f64, q0: T) -> T {
     }
 }
 
-/// `d/dy0` of [`first_frame_term`].
-fn first_frame_score(y0: f64, r2: f64, nu: f64, q0: f64) -> f64 {
-    if r2 > 0.0 { student_score(y0 - q0, r2, nu) } else { 0.0 }
+/// The window's first observed coordinate and its variance (0: not observed).
+fn first_observation(win: &WindowEvidence, q: &[f64], observed: &Observed) -> (f64, f64) {
+    let t0 = win.frames[0];
+    (q[t0], observed.var.get(t0).copied().unwrap_or(0.0))
 }
 
 /// Where a window's simulation starts once fitted to its observed frames \[m of path\]:
@@ -670,8 +670,8 @@ fn first_frame_score(y0: f64, r2: f64, nu: f64, q0: f64) -> f64 {
 ///
 /// With [`DynamicsConfig::fit_window_start`] (off by default: README "Generalization", stop 94)
 /// the collapsed physics prior of a window (observed coordinates `y`, [`Observed`]) is
-/// `y_0 ~ t_nu(q0, r_0^2)` and
-/// `y_k ~ t_nu(q0 + delta_k, sigma_d^2 + r_k^2)` with the start `q0` at its maximum, where
+/// `y_0 ~ t_nu(q0, r_0^2)` and `y_k ~ t_nu(q0 + delta_k, sigma_d^2 + r_k^2)` with the start `q0`
+/// at its maximum, where
 /// `delta_k = Psi_k - y_0` is the displacement simulated from the first observation. `delta` does
 /// not depend on where the simulation starts for the base model (damping, friction and inertia act
 /// on the velocity; the wrench's moment about a fixed axis does not turn with the joint); with a
@@ -688,7 +688,7 @@ pub fn fitted_window_start(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f6
     let y0 = q[win.frames[0]];
     let kp = decode::<f64>(jw.joint.joint, xi, &jw.effects, cfg);
     let traj = simulate_window(jw, win, y0, &kp, cfg);
-    fitted_start(win, q, observed, traj.as_deref(), kp.deviation * kp.deviation)
+    fitted_start(win, q, observed, traj.as_ref(), kp.deviation * kp.deviation)
 }
 
 /// The Student-t location `q0` of `y_0` (variance `r_0^2`) and of `y_k - delta_k` (variance
@@ -696,7 +696,7 @@ pub fn fitted_window_start(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f6
 /// moves the joint) at frame `k`, by iteratively reweighted least squares (Lange, Little & Taylor,
 /// JASA 84, 1989), converged to 1e-13 m. Frames not observed (`r_k^2` 0) do not count; with none
 /// observed, `y_0`.
-fn fitted_start(win: &WindowEvidence, q: &[f64], observed: &Observed, traj: Option<&[f64]>, dev2: f64) -> f64 {
+fn fitted_start(win: &WindowEvidence, q: &[f64], observed: &Observed, traj: Option<&Vec<f64>>, dev2: f64) -> f64 {
     let y0 = q[win.frames[0]];
     let obs: Vec<(f64, f64)> = win
         .frames
@@ -707,7 +707,7 @@ fn fitted_start(win: &WindowEvidence, q: &[f64], observed: &Observed, traj: Opti
             if !(r2 > 0.0) || !q[t].is_finite() {
                 return None;
             }
-            let delta = if k == 0 { 0.0 } else { traj.map_or(0.0, |tr| tr[win.frame_substep[k]] - y0) };
+            let delta = psi_at(traj, win, k, y0) - y0;
             Some((q[t] - delta, if k == 0 { r2 } else { dev2 + r2 }))
         })
         .collect();
