@@ -327,12 +327,16 @@ fn the_physics_at_the_true_parameters_follows_every_push() {
 /// wrong effect is adopted there. A scan of the shipped bags at weights 0.05-0.3 found this and
 /// `drawer_limit_undeclared` at 0.2 as the runs that retract an effect.) The adoption rule is
 /// run here at `max_error_ratio` 0.8, its default until issue 25: at the present 0.5 the damping
-/// is never adopted on this bag, so nothing is there to retract.
+/// is never adopted on this bag, so nothing is there to retract. And without the hand's track
+/// (`model.contact_sd_m: 0`, the default, set here so that the test does not depend on it): with
+/// it the first windows' fit leaves no residual for the wrong damping to take up, so again
+/// nothing is adopted to retract (stop 95).
 #[test]
 fn an_effect_the_later_windows_refute_is_retracted() {
     let mut cfg = Config::new();
     cfg.perception.boundary_weight = 0.2;
     cfg.criticism.max_error_ratio = 0.8;
+    cfg.model.contact_sd_m = 0.0;
     let (_, run) = replay_bag("microwave_spring", &cfg);
     let adopted: Vec<_> = run.updates.iter().flat_map(|u| u.criticism.adopted()).collect();
     let retracted: Vec<_> = run.updates.iter().flat_map(|u| u.criticism.retracted.clone()).collect();
@@ -347,4 +351,44 @@ fn an_effect_the_later_windows_refute_is_retracted() {
     let declared: usize = bom::pipeline::declared_effects(truth).values().map(|e| e.kinds().len()).sum();
     let kept: usize = run.effects.values().map(|e| e.kinds().len()).sum();
     assert_eq!(kept, declared, "effects at the end: {:?}", run.effects);
+}
+
+/// The contact point as an observation of the pushed part (`model.contact_sd_m`): on the shipped
+/// bags without an undeclared effect, every window whose push moves its part gives the pushed
+/// part contact observations, and the hand's recorded track agrees with perception's own track
+/// of the material point it touches — the median distance between the observed contact and the
+/// anchored material point carried by perception's pose of the part at the same frame is under
+/// 1 cm on every bag (measured: 2.3-7.7 mm, the microwave's door the largest), while the contact
+/// itself moved by 9.5-47 cm. A recorder whose contact
+/// frame did not move with the part, a contact attached to the wrong part, or an anchor taken in
+/// the wrong configuration would break this.
+#[test]
+fn the_hand_moves_with_the_part_it_pushes() {
+    use bom::model::likelihood::Evidence;
+    use std::collections::BTreeMap;
+    let mut cfg = Config::new();
+    cfg.model.contact_sd_m = 0.005;
+    for name in ["drawer", "microwave", "slidecabinet", "hingecabinet", "adroit_door"] {
+        let (path, run) = replay_bag(name, &cfg);
+        let mut diag = Diagnostics::default();
+        let bag = input::read_bag(&path, &mut diag).expect("bag");
+        let rec = input::decode_recording(&[bag], &cfg.topics, &cfg.fixed_frame, &mut diag);
+        let ev = Evidence::new(&run.tracks, &run.geometry, &run.windows, &rec.wrenches, &BTreeMap::new(), &bom::pipeline::grid(&cfg));
+        let (mut gaps, mut travel) = (Vec::new(), 0.0f64);
+        for (w, win) in ev.windows.iter().enumerate() {
+            let Some(p) = win.pushed else { continue };
+            let part = &ev.parts[p];
+            let seen: Vec<usize> = win.frames.iter().copied().filter(|&f| part.contact_at(f).is_some()).collect();
+            assert!(!seen.is_empty(), "{name}: window {w}: no contact observation of part {}", part.label);
+            for f in seen {
+                let (Some(c), Some(pose)) = (part.contact_at(f), part.disp[f]) else { continue };
+                let anchored = (pose * Point3::from(c.x)).coords;
+                gaps.push((c.obs.y - anchored).norm());
+                travel = travel.max((c.obs.y - c.x).norm());
+            }
+        }
+        gaps.sort_by(f64::total_cmp);
+        let median = gaps[gaps.len() / 2];
+        assert!(median < 0.01 && travel > 0.05, "{name}: contact vs perception median {median:.4} m over {} frames, travel {travel:.3} m", gaps.len());
+    }
 }

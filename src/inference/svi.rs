@@ -367,7 +367,7 @@ fn coordinate_gap(ev: &Evidence, theta: &[f64], qm: usize, qs: usize, sigma_d: f
 fn unseen_leaves(ev: &Evidence, i: usize, desc: &[usize], starts: &[usize]) -> Vec<bool> {
     let k = ev.len();
     let unseen: Vec<bool> =
-        (0..k).map(|t| std::iter::once(&i).chain(desc).all(|&m| ev.parts[m].obs[t].is_none() && ev.parts[m].rot[t].is_none())).collect();
+        (0..k).map(|t| std::iter::once(&i).chain(desc).all(|&m| !ev.parts[m].observed_at(t))).collect();
     let mut skip = vec![false; k];
     // Later windows first: a window's last frame is a leaf once the next window's first has gone.
     for w in (0..ev.windows.len()).rev() {
@@ -1288,6 +1288,9 @@ fn fit_from(
                         if let Some(o) = &ev.parts[m].rot[t] {
                             ll += log_likelihood_rotation(o, &transforms[m][t].r, rot_sigma, model.student_nu);
                         }
+                        if let Some(co) = ev.parts[m].contact_at(t) {
+                            ll += log_likelihood_position(&co.obs, &transforms[m][t].apply(&co.x), 0.0, model.student_nu);
+                        }
                     }
                 }
                 lik_total += pw * ll;
@@ -1298,7 +1301,7 @@ fn fit_from(
             // the spare `cores` and are combined in block order, as a serial loop would.
             let pres: Vec<Vec<Displacement<f64>>> = (0..n).map(|i| pre_transforms(&g_tree.parent, i, &transforms, k_frames)).collect();
             let descs: Vec<Vec<usize>> = (0..n).map(|i| tree::descendants(&g_tree.parent, i)).collect();
-            let subtrees: Vec<_> = (0..n).map(|i| subtree_members(&g_tree.parent, i, &transforms, &positions, &chosen)).collect();
+            let subtrees: Vec<_> = (0..n).map(|i| subtree_members(ev, &g_tree.parent, i, &transforms, &positions, &chosen)).collect();
             let jobs: Vec<(usize, usize)> = (0..n).flat_map(|i| (0..layout.blocks[i].len()).map(move |k| (i, k))).collect();
             // Per part, the grid frames whose coordinate nothing observes on this particle's
             // tree and that are leaves of the physics prior (integrated out of the comparison).
@@ -1391,6 +1394,9 @@ fn fit_from(
                                     }
                                     if let Some(o) = &ev.parts[m].rot[t] {
                                         ll += log_likelihood_rotation(o, &(d.r * transforms[m][t].r), rot_sigma, model.student_nu);
+                                    }
+                                    if let Some(co) = ev.parts[m].contact_at(t) {
+                                        ll += log_likelihood_position(&co.obs, &d.apply(&transforms[m][t].apply(&co.x)), 0.0, model.student_nu);
                                     }
                                 }
                             }
@@ -1640,7 +1646,7 @@ mod tests {
     use super::*;
     use crate::model::JointType;
     use nalgebra::Matrix3;
-    use crate::model::likelihood::{PartSeries, PositionObs, RotationObs};
+    use crate::model::likelihood::{ContactObs, PartSeries, PositionObs, RotationObs};
     use crate::inference::JointSummary;
 
     /// A posterior of two parts (labels 1 and 2), part 2 of the given type on the given parent.
@@ -1751,6 +1757,14 @@ mod tests {
                 obs,
                 rot,
                 disp: vec![None; k],
+                // The contact on every third frame: a material point 0.4 m from the centre of mass.
+                contact: (0..k)
+                    .map(|t| {
+                        let a = 0.08 * t as f64;
+                        let y = Vector3::new(0.9 * a.cos() - 0.002, 0.9 * a.sin(), 0.81);
+                        (t % 3 == 1).then(|| ContactObs { x: Vector3::new(0.9, 0.0, 0.8), obs: PositionObs { y, basis: Matrix3::identity(), var: Vector3::repeat(2.5e-5) } })
+                    })
+                    .collect(),
                 radius: 0.2,
                 reach: 0.02,
                 unit_inertia: Matrix3::identity() * 0.01,
@@ -1829,6 +1843,7 @@ mod tests {
                 .collect(),
             rot: vec![None; k],
             disp: vec![None; k],
+            contact: vec![],
             radius: 0.1,
             reach: 0.1,
             unit_inertia: Matrix3::identity() * 0.01,

@@ -71,6 +71,7 @@ pub fn inverse(d: &Displacement<f64>) -> Displacement<f64> {
 /// frame (for [`block_pass`]); `transforms` from [`part_transforms`], `positions[m][t]` the centre
 /// of mass of part `m` at frame `t` (fixed frame).
 pub fn subtree_members(
+    ev: &Evidence,
     parent: &[usize],
     i: usize,
     transforms: &[Vec<Displacement<f64>>],
@@ -85,6 +86,7 @@ pub fn subtree_members(
             m,
             z: (0..frames).map(|t| inv[t].apply(&positions[m][t])).collect(),
             r: (0..frames).map(|t| inv[t].r * transforms[m][t].r).collect(),
+            contact: (0..frames).map(|t| ev.parts[m].contact_at(t).map(|c| inv[t].apply(&transforms[m][t].apply(&c.x)))).collect(),
             sigma: values[m].params.noise,
             rot_sigma: values[m].params.rot_noise,
         })
@@ -99,6 +101,9 @@ pub struct Member {
     pub z: Vec<Vector3<f64>>,
     /// Rotation per frame relative to the part's displacement.
     pub r: Vec<Matrix3<f64>>,
+    /// Per frame, the member's contact material point ([`crate::model::likelihood::ContactObs`])
+    /// relative to the part's displacement, where the contact observes it.
+    pub contact: Vec<Option<Vector3<f64>>>,
     /// Position and rotation noise of the member's likelihood (its own sampled values).
     pub sigma: f64,
     pub rot_sigma: f64,
@@ -151,8 +156,9 @@ fn block_pass_n<const N: usize>(
     let (mut l, mut gx, mut gq) = (0.0, vec![0.0; np], vec![0.0; ev.len()]);
     for t in 0..ev.len() {
         let own_obs = &ev.parts[i].obs[t];
-        let any_sub = subtree.iter().any(|mb| ev.parts[mb.m].obs[t].is_some());
-        if own_obs.is_none() && !any_sub {
+        let own_contact = ev.parts[i].contact_at(t);
+        let any_sub = subtree.iter().any(|mb| ev.parts[mb.m].obs[t].is_some() || mb.contact[t].is_some());
+        if own_obs.is_none() && own_contact.is_none() && !any_sub {
             continue;
         }
         let qt = if joint.movable() { D::<N>::from_re(q[t]).derivative(q_slot) } else { D::<N>::from_re(q[t]) };
@@ -164,7 +170,13 @@ fn block_pass_n<const N: usize>(
         if let Some(o) = &ev.parts[i].rot[t] {
             ll += log_likelihood_rotation(o, &s.r, p.rot_noise, cfg.student_nu);
         }
+        if let Some(cobs) = own_contact {
+            ll += log_likelihood_position(&cobs.obs, &s.apply_const(&cobs.x), D::<N>::from(0.0), cfg.student_nu);
+        }
         for mb in subtree {
+            if let (Some(z), Some(cobs)) = (&mb.contact[t], ev.parts[mb.m].contact_at(t)) {
+                ll += log_likelihood_position(&cobs.obs, &s.apply_const(z), D::<N>::from(0.0), cfg.student_nu);
+            }
             if let Some(o) = &ev.parts[mb.m].obs[t] {
                 ll += log_likelihood_position(o, &s.apply_const(&mb.z[t]), D::<N>::from(mb.sigma), cfg.student_nu);
             }
@@ -818,7 +830,7 @@ impl<'a> Density<'a> {
             // the gradient was not the value's: HMC's energy error grew with the prior and the
             // step size fell towards zero on a lid hinged on a drawer).
             let pre = pre_transforms(parent, i, &transforms, frames);
-            let members = subtree_members(parent, i, &transforms, &positions, &values);
+            let members = subtree_members(self.ev, parent, i, &transforms, &positions, &values);
             let (l, gx, gq) = block_pass(ev, i, s.joint, &x[s.xi..s.xi + s.np], values[i].q, &pre, &members, model);
             if parent[i] == 0 {
                 lp += l;

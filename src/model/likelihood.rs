@@ -48,6 +48,21 @@ impl RotationObs {
     }
 }
 
+/// An observation of the pushed part's material point at the contact (dynamic mode,
+/// [`Grid::contact_sd_m`]): while the robot pushes, the contact frame's origin (the contract's
+/// point of application, its pose from `/tf`, i.e. the robot's own kinematics) moves with the
+/// part it pushes. `x` is that material point in the part's reference configuration \[m\], fixed
+/// frame, placed by perception's pose of the part at the first pushing grid frame of the push
+/// (the anchor, which observes nothing itself); `obs.y` is where the contact is at this grid frame
+/// \[m\], fixed frame, with isotropic variance `contact_sd_m^2`. The likelihood is eq. 2's for
+/// this point, Student-t like the centre of mass's ([`log_likelihood_position`], no inferred
+/// noise added).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ContactObs {
+    pub x: Vector3<f64>,
+    pub obs: PositionObs,
+}
+
 /// One part's observations on the grid.
 #[derive(Debug, Clone)]
 pub struct PartSeries {
@@ -64,6 +79,9 @@ pub struct PartSeries {
     /// Per grid frame: the part's observed displacement from its reference configuration (the
     /// registration's pose, whether or not its rotation is observable).
     pub disp: Vec<Option<Isometry3<f64>>>,
+    /// Per grid frame: the contact point observed on this part while it is pushed ([`ContactObs`];
+    /// empty, or all None, where off or not pushed).
+    pub contact: Vec<Option<ContactObs>>,
     /// Root-mean-square radius of the part about its centre of mass \[m\].
     pub radius: f64,
     /// Extent of the part: the 98th percentile of its model points' distances from `com0` \[m\]
@@ -73,6 +91,19 @@ pub struct PartSeries {
     /// configuration; and the hull volume (m³, 0 when flat).
     pub unit_inertia: Matrix3<f64>,
     pub volume: f64,
+}
+
+impl PartSeries {
+    /// The contact observation at grid frame `t`, if any.
+    pub fn contact_at(&self, t: usize) -> Option<&ContactObs> {
+        self.contact.get(t).and_then(Option::as_ref)
+    }
+
+    /// Whether anything observes the part at grid frame `t`: its centre of mass, its rotation or
+    /// the contact.
+    pub fn observed_at(&self, t: usize) -> bool {
+        self.obs[t].is_some() || self.rot[t].is_some() || self.contact_at(t).is_some()
+    }
 }
 
 /// How the evidence grid is built from the cloud stamps (see [`Evidence::new`]).
@@ -110,6 +141,17 @@ pub struct Grid {
     pub max_unobserved_s: f64,
     /// Integration step of the physics in dynamic mode \[s\].
     pub step_s: f64,
+    /// Dynamic mode: the sd \[m\] of the contact point as an observation of the pushed part's
+    /// material point ([`ContactObs`]); 0: the contact is not observed (only the physics uses it).
+    /// Why: the robot's hand moves with what it pushes. A drawer at 50 N s/m pushed 2.5 cm showed
+    /// its motion in ten frames, which a rigid joint's Student-t
+    /// likelihood took for outliers (issue 24, class 1), while the hand's own track said where the
+    /// drawer's front went in every one of them.
+    pub contact_sd_m: f64,
+    /// The least force \[N\] at which the hand counts as touching the part (the window's closing
+    /// threshold, `windows.force_close_n`): while the force ramps up and after release the contact
+    /// frame need not be on the part.
+    pub contact_force_n: f64,
     /// Surface points closer than this to another part count as touching it \[m\]; each model
     /// point stands for a `voxel_m` square of surface.
     pub contact_range_m: f64,
@@ -284,6 +326,7 @@ impl Evidence {
                 obs: series,
                 rot,
                 disp: poses,
+                contact: vec![None; times.len()],
                 radius: geo.radius.max(1e-3),
                 reach: extent,
                 unit_inertia: geo.unit_inertia,
@@ -317,6 +360,20 @@ impl Evidence {
             let (a, b) = (times[*dynamic[w - 1].frames.last().expect("a window has frames")], times[dynamic[w].frames[0]]);
             dynamic[w].continues = longest_gap(&seen, a, b) <= grid.max_unobserved_s;
         }
+        if grid.contact_sd_m > 0.0 {
+            for (w, win) in dynamic.iter().enumerate() {
+                let Some(p) = win.pushed else { continue };
+                contact_observations(&mut parts[p], models[p], win, grid);
+                let part = &parts[p];
+                let gaps: Vec<f64> = win
+                    .frames
+                    .iter()
+                    .filter_map(|&f| part.contact_at(f).zip(part.disp[f]).map(|(c, pose)| (c.obs.y - (pose * nalgebra::Point3::from(c.x)).coords).norm() * 1e3))
+                    .collect();
+                let n = win.frames.iter().filter(|&&f| part.contact_at(f).is_some()).count();
+                tracing::debug!("window {w}: the contact observes part {} in {n} grid frames; off perception's track by {:.1?} mm", part.label, gaps);
+            }
+        }
         let effects = labels.iter().map(|l| effects.get(l).copied().unwrap_or_default()).collect();
         Evidence { times, window_start, parts, contact, windows: dynamic, effects }
     }
@@ -330,6 +387,48 @@ impl Evidence {
         self.times.is_empty()
     }
 }
+
+/// The contact observations of `part`, pushed in `win` ([`ContactObs`]): each run of the window's
+/// grid frames with a force of at least `contact_force_n` is one push; its first frame at which
+/// perception has the part's pose anchors the material point, and each later frame of the run
+/// observes it. A contact point that is not finite is skipped, and so is a push whose anchored
+/// point lies farther than [`CONTACT_REACH_M`] from every point of the part's model `points`
+/// (reference configuration): the hand is not on this part.
+fn contact_observations(part: &mut PartSeries, points: &[Vector3<f64>], win: &WindowEvidence, grid: &Grid) {
+    let var = Vector3::repeat(grid.contact_sd_m * grid.contact_sd_m);
+    let mut anchor: Option<Vector3<f64>> = None;
+    for (k, &f) in win.frames.iter().enumerate() {
+        let step = win.frame_substep[k];
+        let (force, point) = (win.force.get(step), win.point.get(step));
+        let (Some(force), Some(point)) = (force, point) else { break };
+        // Written so that a NaN force does not count as a push.
+        let pushing = force.norm() >= grid.contact_force_n;
+        if !pushing || !point.iter().all(|v| v.is_finite()) {
+            anchor = None;
+            continue;
+        }
+        match anchor {
+            Some(x) => {
+                part.contact[f] = Some(ContactObs { x, obs: PositionObs { y: *point, basis: Matrix3::identity(), var } });
+            }
+            None => {
+                anchor = part.disp[f].map(|pose| (pose.inverse() * nalgebra::Point3::from(*point)).coords);
+                if let Some(x) = anchor {
+                    if !points.iter().any(|p| (p - x).norm_squared() <= CONTACT_REACH_M * CONTACT_REACH_M) {
+                        tracing::debug!("part {}: the contact at grid frame {f} is {CONTACT_REACH_M} m or more from its points; not observed", part.label);
+                        return;
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// The farthest the contact may lie from the pushed part's model points for it to observe the
+/// part \[m\]: a handle that the segmentation leaves out stands a few centimetres off the panel;
+/// farther, the hand is on something else (the part nearest the contact is not always the one
+/// touched: the hand can hide a flap).
+pub const CONTACT_REACH_M: f64 = 0.1;
 
 /// A window's wrench on the integration steps from its first grid frame to its last.
 fn window_evidence(times: &[f64], frames: Vec<usize>, rest: Vec<usize>, rest_before: Vec<usize>, pushed: Option<usize>, wrenches: &[WrenchSample], h: f64) -> Option<WindowEvidence> {
@@ -563,8 +662,76 @@ pub fn coordinate_prior(ev: &Evidence, m: &[f64], s: &[f64], vm: f64, vs: f64, c
 
 #[cfg(test)]
 mod tests {
-    use super::{longest_gap, window_start_prior};
+    use super::{contact_observations, longest_gap, window_start_prior, Grid, PartSeries, WindowEvidence};
     use crate::model::ModelConfig;
+    use nalgebra::{Isometry3, Matrix3, Translation3, UnitQuaternion, Vector3};
+
+    /// A push is one run of frames at or above the contact force: its first frame with a pose of
+    /// the part anchors the material point (in the part's reference configuration) and observes
+    /// nothing; each later frame of the run observes the contact; a frame below the force ends
+    /// the run, and the next run anchors again.
+    #[test]
+    fn contact_points_anchor_each_push_on_the_part() {
+        let k = 8;
+        // The part slides along x by 1 cm a frame and turns by 0.1 rad about z; unseen at frame 1.
+        let pose = |t: usize| {
+            Isometry3::from_parts(Translation3::new(0.01 * t as f64, 0.0, 0.0), UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.1 * t as f64))
+        };
+        let mut part = PartSeries {
+            label: 2,
+            com0: Vector3::zeros(),
+            obs: vec![None; k],
+            rot: vec![None; k],
+            disp: (0..k).map(|t| (t != 1).then(|| pose(t))).collect(),
+            contact: vec![None; k],
+            radius: 0.1,
+            reach: 0.1,
+            unit_inertia: Matrix3::identity(),
+            volume: 0.0,
+        };
+        let material = Vector3::new(0.3, 0.05, 0.1);
+        let at = |t: usize| pose(t) * nalgebra::Point3::from(material);
+        // One integration step per frame; force below 0.5 N at frames 0 and 5.
+        let magnitude = [0.2, 2.0, 2.0, 2.0, 2.0, 0.1, 3.0, 3.0];
+        let win = WindowEvidence {
+            frames: (0..k).collect(),
+            rest: vec![],
+            rest_before: vec![],
+            frame_substep: (0..k).collect(),
+            pushed: Some(0),
+            continues: false,
+            h: 0.01,
+            force: magnitude.iter().map(|&f| Vector3::new(f, 0.0, 0.0)).collect(),
+            torque: vec![Vector3::zeros(); k],
+            point: (0..k).map(|t| at(t).coords).collect(),
+        };
+        let grid = Grid {
+            min_dt_s: 0.0,
+            min_frames: 2,
+            max_frames: 100,
+            rest_after_s: 0.0,
+            rest_before_s: 0.0,
+            max_unobserved_s: 5.0,
+            step_s: 0.01,
+            contact_sd_m: 0.004,
+            contact_force_n: 0.5,
+            contact_range_m: 0.01,
+            voxel_m: 0.005,
+        };
+        contact_observations(&mut part, &[], &win, &grid);
+        assert!((0..k).all(|t| part.contact_at(t).is_none()), "no point of the part near the hand");
+        contact_observations(&mut part, &[Vector3::new(0.3, 0.0, 0.1), Vector3::new(2.0, 0.0, 0.0)], &win, &grid);
+        let seen: Vec<usize> = (0..k).filter(|&t| part.contact_at(t).is_some()).collect();
+        // Frame 1 is pushed but unseen, so frame 2 anchors; frame 6 anchors the second push.
+        assert_eq!(seen, [3, 4, 7]);
+        for &t in &seen {
+            let c = part.contact_at(t).unwrap();
+            assert!((c.x - material).norm() < 1e-12, "frame {t}: material point {:?}", c.x);
+            assert!((c.obs.y - at(t).coords).norm() < 1e-12);
+            assert_eq!(c.obs.var, Vector3::repeat(0.004 * 0.004));
+        }
+        assert!(part.observed_at(3) && !part.observed_at(2), "the anchor observes nothing");
+    }
 
     /// The window-start mixture: with `s = 0` it is the log of the mixture density, without the
     /// reset component the broad Gaussian's expectation, its derivatives are those of its value,

@@ -349,6 +349,8 @@ pub fn grid(cfg: &Config) -> Grid {
         rest_before_s: cfg.inference.rest_before_s,
         max_unobserved_s: cfg.windows.max_unobserved_s,
         step_s: cfg.model.dynamics.step_s,
+        contact_sd_m: cfg.model.contact_sd_m,
+        contact_force_n: cfg.windows.force_close_n,
         contact_range_m: cfg.perception.contact_range_m,
         voxel_m: cfg.perception.voxel_m,
     }
