@@ -389,6 +389,7 @@ fn the_hand_moves_with_the_part_it_pushes() {
         }
         gaps.sort_by(f64::total_cmp);
         let median = gaps[gaps.len() / 2];
+        println!("{name:24} hand vs perception: median {:.1} mm over {} frames; the hand travels {:.0} mm", median * 1e3, gaps.len(), travel * 1e3);
         assert!(median < 0.01 && travel > 0.05, "{name}: contact vs perception median {median:.4} m over {} frames, travel {travel:.3} m", gaps.len());
     }
 }
