@@ -136,6 +136,17 @@ pub struct PerceptionConfig {
     /// after another, larger models first. Off by default: on `tune` it turns 3 parts right,
     /// on `validation` it costs parts in the episode bags (README "Generalization", stop 85).
     pub carrier_starts: bool,
+    /// The scale \[m\] of the distance between the robot's contact point and the material point
+    /// of the pushed part it touched when the push began, as a term of the pushed part's
+    /// registration ([`registration::Hand`], `Tracker::update`); 0: off, the default. Why: the
+    /// hand moves with what it pushes, and the robot's kinematics know where it is, while a small
+    /// part (a hatch in a door) or one seen edge-on registers with cm-scale lag along the
+    /// directions its visible surface leaves loose (`tune`'s `obj045` hatch: 86 mm behind the
+    /// hand; with the hand at 5 mm, 15 mm). The hand does not enter the registration's
+    /// information, so perception's reported covariance does not claim the hand's precision.
+    /// Measured at 0.005 with `model.contact_sd_m` 0.005: it helps `tune` at every seed and
+    /// costs `validation` calls, so it is off (README "Generalization", stop 96).
+    pub hand_sd_m: f64,
 }
 
 impl Default for PerceptionConfig {
@@ -171,6 +182,7 @@ impl Default for PerceptionConfig {
             refine_penalty_nats: 2.0,
             push_move_penalty_nats: 8.0,
             carrier_starts: false,
+            hand_sd_m: 0.0,
         }
     }
 }
@@ -225,15 +237,26 @@ pub struct PartGeometry {
 struct PartState {
     tracker: Tracker,
     anchor: Vector3<f64>,
-    /// The registered frames' points and weights, by stamp, for [`Perception::refine`].
-    frames: Vec<(f64, Vec<Vector3<f64>>, Vec<f64>)>,
+    /// The registered frames' points and weights, by stamp, with the hand on the part if any,
+    /// for [`Perception::refine`].
+    frames: Vec<KeptFrame>,
     /// The most points (before the subsample) seen of the part in one frame.
     most_seen: usize,
     /// The part's registered poses (reference -> fixed frame) by stamp \[s\], oldest first
     /// (its first frame at the identity), for the other parts' [`carrier_starts`]; as many as
     /// `frames` keeps where a frame limit bounds it.
     history: Vec<(f64, Isometry3<f64>)>,
+    /// Stamp of the last registered frame with a push on the part \[s\] (`None`: without one).
+    last_push: Option<f64>,
 }
+
+/// One registered frame of a part kept for [`Perception::refine`]: stamp \[s\], points \[m\]
+/// (fixed frame), their weights, and the hand on the part in that frame, if any.
+type KeptFrame = (f64, Vec<Vector3<f64>>, Vec<f64>, Option<registration::Hand>);
+
+/// A part registered again more than this long after its last pushed frame \[s\] starts a new
+/// touch ([`PerceptionConfig::hand_sd_m`]): the push it was touched in has ended out of view.
+const HAND_GAP_S: f64 = 0.5;
 
 /// Stateful perception: one tracker per part label.
 #[derive(Debug, Default)]
@@ -518,7 +541,7 @@ fn observe_part(
         let tracker = Tracker::new(&clean, cfg);
         let obs = observation(stamp, Isometry3::identity(), None, anchor, cfg, clean.len(), pts.len() - clean.len() + dropped, 1.0);
         let history = vec![(stamp, Isometry3::identity())];
-        return (PartState { tracker, anchor, frames: Vec::new(), most_seen: pts.len() + dropped, history }, Some(obs));
+        return (PartState { tracker, anchor, frames: Vec::new(), most_seen: pts.len() + dropped, history, last_push: None }, Some(obs));
     };
     let seen = pts.len() + dropped;
     state.most_seen = state.most_seen.max(seen);
@@ -529,9 +552,19 @@ fn observe_part(
         tracing::trace!("a part at {stamp:.3} s shows {seen} of its most seen {} points: not registered (perception.min_seen_fraction)", state.most_seen);
         return (state, None);
     }
-    let Some(reg) = state.tracker.update(&FramePoints { points: &pts, weights: &weights }, push.as_ref(), starts, cfg) else { return (state, None) };
+    // A push that ended while the part was out of view: the next one touches anew.
+    if state.last_push.is_some_and(|s| stamp - s > HAND_GAP_S) {
+        state.tracker.touch = None;
+    }
+    let touch = state.tracker.touch;
+    let Some(reg) = state.tracker.update(&FramePoints { points: &pts, weights: &weights, hand: None }, push.as_ref(), starts, cfg) else { return (state, None) };
     let obs = observation(stamp, reg.pose, Some(&reg.information), state.anchor, cfg, pts.len(), dropped, reg.matched);
-    state.frames.push((stamp, pts, weights));
+    let hand = push
+        .zip(touch)
+        .filter(|(p, _)| cfg.hand_sd_m > 0.0 && p.point.coords.iter().all(|v| v.is_finite()))
+        .map(|(p, touch)| registration::Hand { point: p.point.coords, touch, sd: cfg.hand_sd_m });
+    state.last_push = push.map(|_| stamp);
+    state.frames.push((stamp, pts, weights, hand));
     if cfg.carrier_starts {
         state.history.push((stamp, reg.pose));
     }
@@ -594,8 +627,8 @@ fn refine_part(state: &PartState, obs: &mut [PartObservation], cfg: &PerceptionC
         while frames.peek().is_some_and(|f| f.0 < o.stamp) {
             frames.next();
         }
-        let Some((_, pts, w)) = frames.peek().filter(|f| f.0 == o.stamp) else { continue };
-        if let Some(reg) = state.tracker.refine(&FramePoints { points: pts, weights: w }, &o.pose, cfg) {
+        let Some((_, pts, w, hand)) = frames.peek().filter(|f| f.0 == o.stamp) else { continue };
+        if let Some(reg) = state.tracker.refine(&FramePoints { points: pts, weights: w, hand: *hand }, &o.pose, cfg) {
             *o = observation(o.stamp, reg.pose, Some(&reg.information), state.anchor, cfg, o.points, o.outliers, reg.matched);
         }
     }
@@ -686,10 +719,10 @@ pub fn part_geometry(points: &[Vector3<f64>], cfg: &PerceptionConfig) -> PartGeo
 }
 
 /// Give the push (if one acts) to the part of `cloud` nearest its contact point; nothing while
-/// the push prior is off (`push_move_penalty_nats` not below `move_penalty_nats`), so that the
-/// default costs no search.
+/// both its users are off (the push prior, `push_move_penalty_nats` not below
+/// `move_penalty_nats`, and the hand, `hand_sd_m` 0), so that they cost no search.
 fn mark_pushed(parts: &mut [SplitPart], cloud: &CloudFrame, push: Option<&Push>, cfg: &PerceptionConfig) {
-    let Some(push) = push.filter(|_| cfg.push_move_penalty_nats < cfg.move_penalty_nats) else { return };
+    let Some(push) = push.filter(|_| cfg.push_move_penalty_nats < cfg.move_penalty_nats || cfg.hand_sd_m > 0.0) else { return };
     let Some((label, _)) = nearest_part(cloud, &push.point) else { return };
     for part in parts.iter_mut().filter(|p| p.label == label) {
         part.push = Some(*push);
@@ -850,11 +883,16 @@ mod tests {
         mark_pushed(&mut parts, &cloud, Some(&push), &cfg);
         let pushed: Vec<(u32, bool)> = parts.iter().map(|p| (p.label, p.push.is_some())).collect();
         assert_eq!(pushed, [(1, false), (2, true)]);
-        for (push, cfg) in [(None, cfg.clone()), (Some(&push), PerceptionConfig { min_points: 1, ..PerceptionConfig::default() })] {
+        for (push, cfg) in [(None, cfg.clone()), (Some(&push), PerceptionConfig { min_points: 1, hand_sd_m: 0.0, ..PerceptionConfig::default() })] {
             let mut parts = split_parts(&cloud, &cfg);
             mark_pushed(&mut parts, &cloud, push, &cfg);
-            assert!(parts.iter().all(|p| p.push.is_none()), "no push, or the prior off (the default)");
+            assert!(parts.iter().all(|p| p.push.is_none()), "no push, or both the prior and the hand off");
         }
+        // The hand in the registration needs the push too, the prior off or not.
+        let cfg = PerceptionConfig { min_points: 1, hand_sd_m: 0.005, ..PerceptionConfig::default() };
+        let mut parts = split_parts(&cloud, &cfg);
+        mark_pushed(&mut parts, &cloud, Some(&push), &cfg);
+        assert_eq!(parts.iter().map(|p| (p.label, p.push.is_some())).collect::<Vec<_>>(), [(1, false), (2, true)]);
     }
 
     /// A hatch (label 3) in a door (label 2) is hidden while the door turns by 1 rad about its
