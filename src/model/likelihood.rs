@@ -364,6 +364,10 @@ impl Evidence {
             for (w, win) in dynamic.iter().enumerate() {
                 let Some(p) = win.pushed else { continue };
                 contact_observations(&mut parts[p], models[p], win, grid);
+                // Only for the log: how far the hand is from perception's track.
+                if !tracing::enabled!(tracing::Level::DEBUG) {
+                    continue;
+                }
                 let part = &parts[p];
                 let gaps: Vec<f64> = win
                     .frames

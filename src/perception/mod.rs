@@ -556,15 +556,10 @@ fn observe_part(
     if state.last_push.is_some_and(|s| stamp - s > HAND_GAP_S) {
         state.tracker.touch = None;
     }
-    let touch = state.tracker.touch;
     let Some(reg) = state.tracker.update(&FramePoints { points: &pts, weights: &weights, hand: None }, push.as_ref(), starts, cfg) else { return (state, None) };
     let obs = observation(stamp, reg.pose, Some(&reg.information), state.anchor, cfg, pts.len(), dropped, reg.matched);
-    let hand = push
-        .zip(touch)
-        .filter(|(p, _)| cfg.hand_sd_m > 0.0 && p.point.coords.iter().all(|v| v.is_finite()))
-        .map(|(p, touch)| registration::Hand { point: p.point.coords, touch, sd: cfg.hand_sd_m });
     state.last_push = push.map(|_| stamp);
-    state.frames.push((stamp, pts, weights, hand));
+    state.frames.push((stamp, pts, weights, reg.hand));
     if cfg.carrier_starts {
         state.history.push((stamp, reg.pose));
     }

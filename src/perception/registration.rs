@@ -648,6 +648,8 @@ pub struct Registered {
     pub information: Matrix6<f64>,
     /// Fraction of points matched within the fine gate.
     pub matched: f64,
+    /// The hand's match in this registration, if one was used ([`Hand`]).
+    pub hand: Option<Hand>,
 }
 
 /// Tracks one part: its model and its pose over time.
@@ -770,7 +772,7 @@ impl Tracker {
         // confirmation: they are registered exactly, and densify the first frame's sparse model.
         let confirm = if frame_index < cfg.initial_frames && pose == Isometry3::identity() { 1 } else { cfg.confirm_frames };
         self.model.grow(&grow, frame_index, confirm, cfg.max_model_points);
-        Some(Registered { pose, information, matched })
+        Some(Registered { pose, information, matched, hand })
     }
 }
 
@@ -806,7 +808,7 @@ impl Tracker {
             }
         }
         let information = icp_information(&mut nn, frame, &best.2, scales, cfg)?;
-        Some(Registered { pose: best.2, information, matched: best.1 })
+        Some(Registered { pose: best.2, information, matched: best.1, hand: frame.hand })
     }
 }
 
