@@ -58,7 +58,7 @@ use super::summary::{self, softmax};
 use super::Posterior;
 use crate::model::density::{block_pass, inverse, part_transforms, physics_prior, physics_prior_collapsed, pre_transforms, subtree_members, window_starts, PartValue};
 use crate::model::dynamics;
-use crate::model::likelihood::{coordinate_prior, log_likelihood_position, log_likelihood_rotation, window_start_prior, Evidence};
+use crate::model::likelihood::{coordinate_prior, window_start_prior, Evidence};
 use crate::model::{decode, displacement, tree, Displacement, JointParams, JointType, ModelConfig};
 
 
@@ -1282,15 +1282,7 @@ fn fit_from(
                 for m in 0..n {
                     let (sigma, rot_sigma) = (chosen[m].params.noise, chosen[m].params.rot_noise);
                     for t in 0..k_frames {
-                        if let Some(o) = &ev.parts[m].obs[t] {
-                            ll += log_likelihood_position(o, &positions[m][t], sigma, model.student_nu);
-                        }
-                        if let Some(o) = &ev.parts[m].rot[t] {
-                            ll += log_likelihood_rotation(o, &transforms[m][t].r, rot_sigma, model.student_nu);
-                        }
-                        if let Some(co) = ev.parts[m].contact_at(t) {
-                            ll += log_likelihood_position(&co.obs, &transforms[m][t].apply(&co.x), 0.0, model.student_nu);
-                        }
+                        ev.parts[m].add_frame_log_likelihood(&mut ll, t, &transforms[m][t], &positions[m][t], None, sigma, rot_sigma, model.student_nu);
                     }
                 }
                 lik_total += pw * ll;
@@ -1389,15 +1381,7 @@ fn fit_from(
                                 let d = new_pre.compose(&inverse(&pre[t]));
                                 for &m in &members {
                                     let (sigma, rot_sigma) = (chosen[m].params.noise, chosen[m].params.rot_noise);
-                                    if let Some(o) = &ev.parts[m].obs[t] {
-                                        ll += log_likelihood_position(o, &d.apply(&positions[m][t]), sigma, model.student_nu);
-                                    }
-                                    if let Some(o) = &ev.parts[m].rot[t] {
-                                        ll += log_likelihood_rotation(o, &(d.r * transforms[m][t].r), rot_sigma, model.student_nu);
-                                    }
-                                    if let Some(co) = ev.parts[m].contact_at(t) {
-                                        ll += log_likelihood_position(&co.obs, &d.apply(&transforms[m][t].apply(&co.x)), 0.0, model.student_nu);
-                                    }
+                                    ev.parts[m].add_frame_log_likelihood(&mut ll, t, &transforms[m][t], &positions[m][t], Some(&d), sigma, rot_sigma, model.student_nu);
                                 }
                             }
                             log_w[i][j] + ll

@@ -16,7 +16,7 @@ use std::collections::BTreeMap;
 use nalgebra::{Isometry3, Matrix3, Vector3};
 
 use super::effects::EffectSet;
-use super::{c, ModelConfig, Real};
+use super::{c, Displacement, ModelConfig, Real};
 use crate::input::WrenchSample;
 use crate::perception::{geometry, PartGeometry, PartObservation, PartTracks};
 use crate::windows::Window;
@@ -103,6 +103,27 @@ impl PartSeries {
     /// the contact.
     pub fn observed_at(&self, t: usize) -> bool {
         self.obs[t].is_some() || self.rot[t].is_some() || self.contact_at(t).is_some()
+    }
+
+    /// Add the part's log-likelihood at grid frame `t` (eq. 2, Student-t with `nu` degrees of
+    /// freedom) to `ll`: its centre of mass at `com` \[m\] (fixed frame), its rotation `disp.r`
+    /// where observable, and the hand's contact point where observed (its material point moved
+    /// by `disp`, the part's displacement from its reference configuration), all of it moved
+    /// further by `moved` where given (the part's subtree re-attached under another parent).
+    /// `sigma` \[m\] and `rot_sigma` \[rad\] are the inferred noise scales. Terms are added in
+    /// that order, one at a time, so that a sum over frames does not depend on the caller.
+    #[allow(clippy::too_many_arguments)]
+    pub fn add_frame_log_likelihood(&self, ll: &mut f64, t: usize, disp: &Displacement<f64>, com: &Vector3<f64>, moved: Option<&Displacement<f64>>, sigma: f64, rot_sigma: f64, nu: f64) {
+        if let Some(o) = &self.obs[t] {
+            *ll += log_likelihood_position(o, &moved.map_or(*com, |d| d.apply(com)), sigma, nu);
+        }
+        if let Some(o) = &self.rot[t] {
+            *ll += log_likelihood_rotation(o, &moved.map_or(disp.r, |d| d.r * disp.r), rot_sigma, nu);
+        }
+        if let Some(co) = self.contact_at(t) {
+            let x = disp.apply(&co.x);
+            *ll += log_likelihood_position(&co.obs, &moved.map_or(x, |d| d.apply(&x)), 0.0, nu);
+        }
     }
 }
 

@@ -145,7 +145,9 @@ pub struct PerceptionConfig {
     /// hand; with the hand at 5 mm, 15 mm). The hand does not enter the registration's
     /// information, so perception's reported covariance does not claim the hand's precision.
     /// Measured at 0.005 with `model.contact_sd_m` 0.005: it helps `tune` at every seed and
-    /// costs `validation` calls, so it is off (README "Generalization", stop 96).
+    /// costs `validation` calls, so it is off (README "Generalization", stop 96); alone, it gains
+    /// nothing clear on `tune` and costs `validation` calls too (stop 97): its anchor, one
+    /// frame's pose of the touched part, can be a centimetre off on a thin part.
     pub hand_sd_m: f64,
 }
 
@@ -718,7 +720,12 @@ pub fn part_geometry(points: &[Vector3<f64>], cfg: &PerceptionConfig) -> PartGeo
 /// `move_penalty_nats`, and the hand, `hand_sd_m` 0), so that they cost no search.
 fn mark_pushed(parts: &mut [SplitPart], cloud: &CloudFrame, push: Option<&Push>, cfg: &PerceptionConfig) {
     let Some(push) = push.filter(|_| cfg.push_move_penalty_nats < cfg.move_penalty_nats || cfg.hand_sd_m > 0.0) else { return };
-    let Some((label, _)) = nearest_part(cloud, &push.point) else { return };
+    let Some((label, d)) = nearest_part(cloud, &push.point) else { return };
+    if tracing::enabled!(tracing::Level::TRACE) {
+        // The runner-up part's distance: how sure this cloud's attribution is.
+        let second = cloud.points.iter().zip(&cloud.labels).filter(|(_, l)| **l != label).map(|(p, _)| (p - push.point).norm()).fold(f64::INFINITY, f64::min);
+        tracing::trace!("push at {:.3} s goes to part {label}: contact {:.1} mm from it, {:.1} mm from the next part", cloud.stamp, d * 1e3, second * 1e3);
+    }
     for part in parts.iter_mut().filter(|p| p.label == label) {
         part.push = Some(*push);
     }
