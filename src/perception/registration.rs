@@ -692,7 +692,9 @@ impl Tracker {
     /// material point at the contact (`touch`), and in each later frame of the push the hand is
     /// one more match of the cost ([`Hand`]) and the pose that carries that point to the hand is
     /// one more ICP start: the hand moves with what it pushes, also along directions the part's
-    /// visible surface leaves loose (a hatch sliding in its door's plane).
+    /// visible surface leaves loose (a hatch sliding in its door's plane). The hand is built here
+    /// from `push` and the touch, so `frame.hand` is not read (callers pass `None`); the hand used
+    /// is returned in [`Registered::hand`] for [`Tracker::refine`], which does read it.
     pub fn update(&mut self, frame: &FramePoints<'_>, push: Option<&super::Push>, starts: &[Isometry3<f64>], cfg: &PerceptionConfig) -> Option<Registered> {
         let frame_index = self.frames;
         self.frames += 1;
