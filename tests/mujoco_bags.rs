@@ -328,7 +328,8 @@ fn the_physics_at_the_true_parameters_follows_every_push() {
 /// `drawer_limit_undeclared` at 0.2 as the runs that retract an effect.) The adoption rule is
 /// run here at `max_error_ratio` 0.8, its default until issue 25: at the present 0.5 the damping
 /// is never adopted on this bag, so nothing is there to retract. And without the hand's track
-/// (`model.contact_sd_m: 0`, the default, set here so that the test does not depend on it): with
+/// (`model.contact_sd_m: 0`, off since stop 98 made 0.005 the default, set here so that the test
+/// does not depend on it): with
 /// it the first windows' fit leaves no residual for the wrong damping to take up, so again
 /// nothing is adopted to retract (stop 95).
 #[test]

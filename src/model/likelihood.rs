@@ -52,8 +52,8 @@ impl RotationObs {
 /// [`Grid::contact_sd_m`]): while the robot pushes, the contact frame's origin (the contract's
 /// point of application, its pose from `/tf`, i.e. the robot's own kinematics) moves with the
 /// part it pushes. `x` is that material point in the part's reference configuration \[m\], fixed
-/// frame, placed by perception's pose of the part at the first pushing grid frame of the push
-/// (the anchor, which observes nothing itself); `obs.y` is where the contact is at this grid frame
+/// frame, placed by perception's poses of the part at the push's start (see
+/// `contact_observations`); `obs.y` is where the contact is at this grid frame
 /// \[m\], fixed frame, with isotropic variance `contact_sd_m^2`. The likelihood is eq. 2's for
 /// this point, Student-t like the centre of mass's ([`log_likelihood_position`], no inferred
 /// noise added).
@@ -414,14 +414,28 @@ impl Evidence {
 }
 
 /// The contact observations of `part`, pushed in `win` ([`ContactObs`]): each run of the window's
-/// grid frames with a force of at least `contact_force_n` is one push; its first frame at which
-/// perception has the part's pose anchors the material point, and each later frame of the run
-/// observes it. A contact point that is not finite is skipped, and so is a push whose anchored
-/// point lies farther than [`CONTACT_REACH_M`] from every point of the part's model `points`
-/// (reference configuration): the hand is not on this part.
+/// grid frames with a force of at least `contact_force_n` and a finite contact point is one push,
+/// and its frames observe one material point `x` (reference configuration), placed by perception's
+/// pose of the part (`pose⁻¹ · contact`) while the part is still at rest:
+/// - over the push's first frames, while the hand stays within `contact_sd_m` of where the push
+///   began, the componentwise median of the carried contact, where two or more of those frames
+///   have a pose; every frame of the push then observes `x`;
+/// - otherwise the push's first frame with a pose alone places `x`, and the frames after it
+///   observe it (stop 95's rule).
+///
+/// Why at rest: where the hand touches the part is not measured, and perception's registration
+/// lags a moving part along the directions its surface leaves loose, so a point placed by poses
+/// during the motion is shifted along the motion, and the hand then says the part stood elsewhere
+/// before the push than the clouds say (stop 98: the median over a whole push added a false
+/// gravity finding on `bags/corpus/obj057_procedural` with held-out error 2.5 -> 5.8 mm). Why
+/// a median of several frames: a single frame's registration of a small part can be off by
+/// 0.07-0.10 rad (README, stop 97). A push whose material point lies farther than
+/// [`CONTACT_REACH_M`] from every point of the part's model `points` (reference configuration)
+/// ends the window's observations: the hand is not on this part.
 fn contact_observations(part: &mut PartSeries, points: &[Vector3<f64>], win: &WindowEvidence, grid: &Grid) {
     let var = Vector3::repeat(grid.contact_sd_m * grid.contact_sd_m);
-    let mut anchor: Option<Vector3<f64>> = None;
+    // The runs of pushing grid frames with a finite contact point: one push each.
+    let mut runs: Vec<Vec<(usize, Vector3<f64>)>> = vec![Vec::new()];
     for (k, &f) in win.frames.iter().enumerate() {
         let step = win.frame_substep[k];
         let (force, point) = (win.force.get(step), win.point.get(step));
@@ -429,22 +443,37 @@ fn contact_observations(part: &mut PartSeries, points: &[Vector3<f64>], win: &Wi
         // Written so that a NaN force does not count as a push.
         let pushing = force.norm() >= grid.contact_force_n;
         if !pushing || !point.iter().all(|v| v.is_finite()) {
-            anchor = None;
+            runs.push(Vec::new());
             continue;
         }
-        match anchor {
-            Some(x) => {
-                part.contact[f] = Some(ContactObs { x, obs: PositionObs { y: *point, basis: Matrix3::identity(), var } });
-            }
-            None => {
-                anchor = part.disp[f].map(|pose| (pose.inverse() * nalgebra::Point3::from(*point)).coords);
-                if let Some(x) = anchor {
-                    if !points.iter().any(|p| (p - x).norm_squared() <= CONTACT_REACH_M * CONTACT_REACH_M) {
-                        tracing::debug!("part {}: the contact at grid frame {f} is {CONTACT_REACH_M} m or more from its points; not observed", part.label);
-                        return;
-                    }
+        runs.last_mut().expect("one run at least").push((f, *point));
+    }
+    for run in runs {
+        let Some(&(_, y0)) = run.first() else { continue };
+        let carry = |&(f, y): &(usize, Vector3<f64>)| part.disp[f].map(|pose| (pose.inverse() * nalgebra::Point3::from(y)).coords);
+        let still: Vec<Vector3<f64>> = run.iter().take_while(|(_, y)| (y - y0).norm() < grid.contact_sd_m).filter_map(carry).collect();
+        let (x, from) = if still.len() >= 2 {
+            let x = Vector3::from_fn(|c, _| {
+                let mut v: Vec<f64> = still.iter().map(|u| u[c]).collect();
+                v.sort_by(f64::total_cmp);
+                let n = v.len();
+                if n % 2 == 1 {
+                    v[n / 2]
+                } else {
+                    0.5 * (v[n / 2 - 1] + v[n / 2])
                 }
-            }
+            });
+            (x, 0)
+        } else {
+            let Some((k, x)) = run.iter().enumerate().find_map(|(k, e)| carry(e).map(|x| (k, x))) else { continue };
+            (x, k + 1)
+        };
+        if !points.iter().any(|p| (p - x).norm_squared() <= CONTACT_REACH_M * CONTACT_REACH_M) {
+            tracing::debug!("part {}: a push's contact is {CONTACT_REACH_M} m or more from its points; not observed", part.label);
+            return;
+        }
+        for &(f, y) in &run[from..] {
+            part.contact[f] = Some(ContactObs { x, obs: PositionObs { y, basis: Matrix3::identity(), var } });
         }
     }
 }
@@ -691,10 +720,12 @@ mod tests {
     use crate::model::ModelConfig;
     use nalgebra::{Isometry3, Matrix3, Translation3, UnitQuaternion, Vector3};
 
-    /// A push is one run of frames at or above the contact force: its first frame with a pose of
-    /// the part anchors the material point (in the part's reference configuration) and observes
-    /// nothing; each later frame of the run observes the contact; a frame below the force ends
-    /// the run, and the next run anchors again.
+    /// A push is one run of frames at or above the contact force; a frame below the force ends
+    /// it. A push that moves the hand at once: its first frame with a pose of the part anchors
+    /// the material point (the part's reference configuration) and observes nothing, each later
+    /// frame observes it. A push that starts slowly: the median over the frames before the hand
+    /// has moved `contact_sd_m` places the point, so that one frame's registration error does not
+    /// move it, and every frame observes. A part far from the hand is not observed.
     #[test]
     fn contact_points_anchor_each_push_on_the_part() {
         let k = 8;
@@ -718,7 +749,7 @@ mod tests {
         let at = |t: usize| pose(t) * nalgebra::Point3::from(material);
         // One integration step per frame; force below 0.5 N at frames 0 and 5.
         let magnitude = [0.2, 2.0, 2.0, 2.0, 2.0, 0.1, 3.0, 3.0];
-        let win = WindowEvidence {
+        let mut win = WindowEvidence {
             frames: (0..k).collect(),
             rest: vec![],
             rest_before: vec![],
@@ -743,9 +774,10 @@ mod tests {
             contact_range_m: 0.01,
             voxel_m: 0.005,
         };
+        let near = [Vector3::new(0.3, 0.0, 0.1), Vector3::new(2.0, 0.0, 0.0)];
         contact_observations(&mut part, &[], &win, &grid);
         assert!((0..k).all(|t| part.contact_at(t).is_none()), "no point of the part near the hand");
-        contact_observations(&mut part, &[Vector3::new(0.3, 0.0, 0.1), Vector3::new(2.0, 0.0, 0.0)], &win, &grid);
+        contact_observations(&mut part, &near, &win, &grid);
         let seen: Vec<usize> = (0..k).filter(|&t| part.contact_at(t).is_some()).collect();
         // Frame 1 is pushed but unseen, so frame 2 anchors; frame 6 anchors the second push.
         assert_eq!(seen, [3, 4, 7]);
@@ -756,6 +788,20 @@ mod tests {
             assert_eq!(c.obs.var, Vector3::repeat(0.004 * 0.004));
         }
         assert!(part.observed_at(3) && !part.observed_at(2), "the anchor observes nothing");
+        // A slow start: the part (and the hand) still over frames 1-3 of the first push, then
+        // moving; perception's pose at frame 2 turned by 0.1 rad (3 cm at the hand).
+        let slow = |t: usize| pose(t.saturating_sub(3));
+        part.disp = (0..k).map(|t| Some(slow(t))).collect();
+        part.disp[2] = Some(slow(2) * Isometry3::rotation(Vector3::z() * 0.1));
+        win.point = (0..k).map(|t| (slow(t) * nalgebra::Point3::from(material)).coords).collect();
+        part.contact = vec![None; k];
+        contact_observations(&mut part, &near, &win, &grid);
+        let seen: Vec<usize> = (0..k).filter(|&t| part.contact_at(t).is_some()).collect();
+        assert_eq!(seen, [1, 2, 3, 4, 7], "the slow push observes in every frame, the quick one after its anchor");
+        for &t in &seen {
+            let c = part.contact_at(t).unwrap();
+            assert!((c.x - material).norm() < 1e-12, "frame {t}: material point {:?}", c.x);
+        }
     }
 
     /// The window-start mixture: with `s = 0` it is the log of the mixture density, without the
