@@ -14,6 +14,7 @@
 use std::collections::BTreeMap;
 
 use nalgebra::{Isometry3, Matrix3, Vector3};
+use statrs::statistics::{Data, Median};
 
 use super::effects::EffectSet;
 use super::{c, Displacement, ModelConfig, Real};
@@ -427,7 +428,8 @@ impl Evidence {
 /// lags a moving part along the directions its surface leaves loose, so a point placed by poses
 /// during the motion is shifted along the motion, and the hand then says the part stood elsewhere
 /// before the push than the clouds say (stop 98: the median over a whole push added a false
-/// gravity finding on `bags/corpus/obj057_procedural` with held-out error 2.5 -> 5.8 mm). Why
+/// gravity finding on `bags/corpus/obj057_procedural`, held-out error 5.8 mm against 2.5 with the
+/// first-frame anchor). Why
 /// a median of several frames: a single frame's registration of a small part can be off by
 /// 0.07-0.10 rad (README, stop 97). A push whose material point lies farther than
 /// [`CONTACT_REACH_M`] from every point of the part's model `points` (reference configuration)
@@ -453,17 +455,7 @@ fn contact_observations(part: &mut PartSeries, points: &[Vector3<f64>], win: &Wi
         let carry = |&(f, y): &(usize, Vector3<f64>)| part.disp[f].map(|pose| (pose.inverse() * nalgebra::Point3::from(y)).coords);
         let still: Vec<Vector3<f64>> = run.iter().take_while(|(_, y)| (y - y0).norm() < grid.contact_sd_m).filter_map(carry).collect();
         let (x, from) = if still.len() >= 2 {
-            let x = Vector3::from_fn(|c, _| {
-                let mut v: Vec<f64> = still.iter().map(|u| u[c]).collect();
-                v.sort_by(f64::total_cmp);
-                let n = v.len();
-                if n % 2 == 1 {
-                    v[n / 2]
-                } else {
-                    0.5 * (v[n / 2 - 1] + v[n / 2])
-                }
-            });
-            (x, 0)
+            (Vector3::from_fn(|c, _| Data::new(still.iter().map(|u| u[c]).collect::<Vec<f64>>()).median()), 0)
         } else {
             let Some((k, x)) = run.iter().enumerate().find_map(|(k, e)| carry(e).map(|x| (k, x))) else { continue };
             (x, k + 1)
