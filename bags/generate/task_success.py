@@ -3,7 +3,7 @@ bom's posterior, on the true object in MuJoCo.
 
     python bags/generate/task_success.py --corpus corpus --split validation --bom target/release/bom \\
         --models models/ --json success.json [--jobs 2] [--draws 64] [--config FILE] [--min-interactions 2] \\
-        [--control open|closed]
+        [--control open|closed] [--update bayes|none]
 
 For every corpus object (of the split, with at least `--min-interactions` interactions) bom's
 model is the JSON summary of `bom replay` on the object's continuous bag (made in `--models` when
@@ -17,7 +17,9 @@ contact), as the recorder checks its recordings.
 Three planners, each executed on the true object open loop (`--control open`, the default) or,
 for `bom` and `oracle`, closed loop (`--control closed`, class `Feedback`: the open-loop push
 halfway, then the part's coordinate observed through the model at 30 Hz with 2 mm noise, and a new
-plan and push whenever the part rests short of the target):
+plan and push whenever the part rests short of the target, planned on the draws reweighed by Bayes'
+rule with what the earlier pushes did, `--update bayes`, the default; `--update none` keeps bom's
+draws as they came):
 - `bom`: the posterior's MAP joint type, its axis, the part's centre of mass and unit inertia, and
   the medians of damping, Coulomb friction and mass plan a push; the posterior's spread (axis
   sds, the kinodynamic 90% intervals) is sampled into `--draws` models and the plan chosen is the
@@ -353,11 +355,17 @@ class Feedback:
     tolerance) and the model's coordinate
     is short of the target by more than half the tolerance, the planner plans and executes a new
     push, from the observed handle (the mean of those observations), for the displacement still
-    wanted, at most `MAX_PUSHES` pushes. An overshoot is final: a push cannot pull. The same for
-    bom's model and the oracle's; only the model differs."""
+    wanted, at most `MAX_PUSHES` pushes. With `update="bayes"` that push is planned on the model's
+    draws reweighed by what the pushes so far did (`_reweigh`). An overshoot is final: a push
+    cannot pull. The same for bom's model and the oracle's; only the model differs (the oracle's
+    one draw is unchanged by the reweighing)."""
 
-    def __init__(self, model, task, seed, selection="robust"):
+    def __init__(self, model, task, seed, selection="robust", update="bayes"):
         self.model, self.task, self.selection = model, task, selection
+        self.prior, self.update = model, update
+        self.pushed = []  # (sub-task, force, hold, model coordinate at its start) per push
+        self.moved = []
+        self.logw = np.zeros(len(model["damping"]))  # log weights of the prior's draws
         median = median_of(model)
         self.kind = median["kind"]
         self.rng = np.random.default_rng(seed)
@@ -399,10 +407,36 @@ class Feedback:
                 self.reason = "no push within the force and time limits reaches the target in the model"
             return
         self.command = force_along_plan(self.model, sub, chosen[0], chosen[1])
+        self.pushed.append((sub, chosen[0], chosen[1], q))
         self.start, self.state = t, "push"
         self.pushes += 1
         self.forces.append(chosen[0])
         self.holds.append(chosen[1])
+
+    def _reweigh(self, q):
+        """Bayes' rule on the planner's draws with what the pushes so far did: each draw of the
+        prior model (bom's posterior) is weighed by the likelihood of every push's observed
+        displacement under that draw's physics, `N(observed | simulated, s^2)` with `s` half the
+        task's tolerance (the scale the task resolves; the observed rest coordinate's own noise,
+        under a millimetre, is far smaller), and the draws resampled by weight; the heaviest draw
+        becomes draw 0, the model the next push is planned on."""
+        # Called once after each push but the last, `q` where the latest push left the part, so
+        # only that push's term is new: the earlier ones are in `logw` already.
+        sub, force, hold, q_start = self.pushed[-1]
+        sim, _ = simulate(self.prior, sub, force, hold)
+        self.logw += -0.5 * ((sim - (q - q_start)) / (0.5 * self.tol)) ** 2
+        # what the latest push did against what bom's draws said it would (the JSON's `moved`)
+        self.moved.append({"observed": q - q_start, "median_model": float(sim[0]),
+                           "draws_q05": float(np.quantile(sim, 0.05)), "draws_q95": float(np.quantile(sim, 0.95))})
+        w = np.exp(self.logw - np.max(self.logw))
+        w /= np.sum(w)
+        n = len(w)
+        # systematic resampling (deterministic); the heaviest draw, whose weight is at least 1/n
+        # and so always drawn, swapped to the front
+        idx = np.minimum(np.searchsorted(np.cumsum(w), (np.arange(n) + 0.5) / n), n - 1)
+        pos = int(np.argmax(idx == int(np.argmax(w))))
+        idx[[0, pos]] = idx[[pos, 0]]
+        self.model = {k: (v[idx] if isinstance(v, np.ndarray) else v) for k, v in self.prior.items()}
 
     def observe(self, t, handle):
         if self.done:
@@ -419,6 +453,8 @@ class Feedback:
             if abs(np.mean(qs[-k:]) - np.mean(qs[:k])) < 0.25 * self.tol:
                 q = float(np.mean(qs))
                 if self.want - q > 0.5 * self.tol and self.pushes < MAX_PUSHES:
+                    if self.update == "bayes":
+                        self._reweigh(q)
                     self._start_push(t, np.mean([o[2] for o in last], axis=0), q)
                 else:
                     self.done = True
@@ -522,15 +558,15 @@ def true_as_arrays(true):
 # --------------------------------------------------------------------------------------------
 
 
-def run_planner(scene, task, model, selection="robust", control="open", seed=0):
+def run_planner(scene, task, model, selection="robust", control="open", seed=0, update="bayes"):
     if control == "closed":
-        ctl = Feedback(model, task, seed, selection)
+        ctl = Feedback(model, task, seed, selection, update)
         final, hit = scene.execute_feedback(task, ctl)
         if ctl.pushes == 0:
             return {"success": False, "reason": ctl.reason}
         error = abs(final - task["target"])
         return {"success": bool(error <= task["tol"] and not hit), "pushes": ctl.pushes, "forces_n": ctl.forces,
-                "holds_s": ctl.holds, "final_q": final, "error": error, "hit": hit}
+                "holds_s": ctl.holds, "moved": ctl.moved, "final_q": final, "error": error, "hit": hit}
     chosen = plan(model, task, selection)
     if chosen is None:
         return {"success": False, "reason": "no push within the force and time limits reaches the target in the model"}
@@ -559,7 +595,7 @@ def run_model_free(scene, task):
     return {"success": bool(error <= task["tol"] and not hit), "final_q": final, "error": error, "hit": hit}
 
 
-def evaluate(entry, model_json, draws, selection="robust", control="open"):
+def evaluate(entry, model_json, draws, selection="robust", control="open", update="bayes"):
     """All three planners on one corpus object (a manifest entry) with bom's summary."""
     scene = Scene(entry["seed_used"])
     task = scene.task()
@@ -568,8 +604,8 @@ def evaluate(entry, model_json, draws, selection="robust", control="open"):
     model, called = bom_model(summary, task, draws, entry["seed_used"])
     row["bom_called"] = called
     row["true_joint"] = task["kind"]
-    row["bom"] = run_planner(scene, task, model, selection, control, entry["seed_used"]) if model is not None else {"success": False, "reason": f"bom called the part {called}"}
-    row["oracle"] = run_planner(scene, task, true_as_arrays(scene.true_model(task)), "robust", control, entry["seed_used"])
+    row["bom"] = run_planner(scene, task, model, selection, control, entry["seed_used"], update) if model is not None else {"success": False, "reason": f"bom called the part {called}"}
+    row["oracle"] = run_planner(scene, task, true_as_arrays(scene.true_model(task)), "robust", control, entry["seed_used"], update)
     row["model_free"] = run_model_free(scene, task)
     return row
 
@@ -585,12 +621,12 @@ def fit(bom, bag, out, config):
 
 
 def job(args):
-    entry, corpus_dir, models, bom, config, draws, selection, control = args
+    entry, corpus_dir, models, bom, config, draws, selection, control, update = args
     out = Path(models) / f"{entry['name']}.json"
     try:
         if not out.exists():
             fit(bom, Path(corpus_dir) / entry["continuous"][0], out, config)
-        return evaluate(entry, out, draws, selection, control)
+        return evaluate(entry, out, draws, selection, control, update)
     except Exception as e:  # one object's failure is one line, the rest go on
         return {"name": entry["name"], "error": str(e)}
 
@@ -613,6 +649,8 @@ def main(argv=None):
                     help="bom planner's choice among pushes: most draws within tolerance, or the least force within 0.1 of that")
     ap.add_argument("--control", default="open", choices=["open", "closed"],
                     help="execute each plan open loop, or closed loop on the observed handle (class Feedback)")
+    ap.add_argument("--update", default="bayes", choices=["none", "bayes"],
+                    help="closed loop: plan each later push on the draws reweighed by what the earlier pushes did (Feedback._reweigh)")
     ap.add_argument("--only", help="comma-separated object names")
     args = ap.parse_args(argv)
     manifest = json.loads((Path(args.corpus) / "manifest.json").read_text())["objects"]
@@ -620,7 +658,7 @@ def main(argv=None):
     entries = [o for o in manifest if (args.split == "all" or o["split"] == args.split)
                and o["interactions"] >= args.min_interactions and (only is None or o["name"] in only)]
     Path(args.models).mkdir(parents=True, exist_ok=True)
-    jobs = [(e, args.corpus, args.models, args.bom, args.config, args.draws, args.selection, args.control) for e in entries]
+    jobs = [(e, args.corpus, args.models, args.bom, args.config, args.draws, args.selection, args.control, args.update) for e in entries]
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as ex:
         rows = list(ex.map(job, jobs))
     scored = [r for r in rows if "error" not in r]
