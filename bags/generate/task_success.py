@@ -3,7 +3,7 @@ bom's posterior, on the true object in MuJoCo.
 
     python bags/generate/task_success.py --corpus corpus --split validation --bom target/release/bom \\
         --models models/ --json success.json [--jobs 2] [--draws 64] [--config FILE] [--min-interactions 2] \\
-        [--control open|closed] [--update bayes|none]
+        [--control open|closed] [--update enkf|bayes|none]
 
 For every corpus object (of the split, with at least `--min-interactions` interactions) bom's
 model is the JSON summary of `bom replay` on the object's continuous bag (made in `--models` when
@@ -17,9 +17,9 @@ contact), as the recorder checks its recordings.
 Three planners, each executed on the true object open loop (`--control open`, the default) or,
 for `bom` and `oracle`, closed loop (`--control closed`, class `Feedback`: the open-loop push
 halfway, then the part's coordinate observed through the model at 30 Hz with 2 mm noise, and a new
-plan and push whenever the part rests short of the target, planned on the draws reweighed by Bayes'
-rule with what the earlier pushes did, `--update bayes`, the default; `--update none` keeps bom's
-draws as they came):
+plan and push whenever the part rests short of the target, planned on the draws conditioned on what
+the earlier pushes did: moved by an ensemble Kalman update, `--update enkf`, the default; or
+reweighed by Bayes' rule, `--update bayes`; `--update none` keeps bom's draws as they came):
 - `bom`: the posterior's MAP joint type, its axis, the part's centre of mass and unit inertia, and
   the medians of damping, Coulomb friction and mass plan a push; the posterior's spread (axis
   sds, the kinodynamic 90% intervals) is sampled into `--draws` models and the plan chosen is the
@@ -79,6 +79,8 @@ FEEDBACK_MAX_S = 30.0
 # The first push of the closed loop aims at this share of the way (chosen on `tune`, the one
 # value tried): an overshoot cannot be undone, a push that falls short can be followed by another.
 PROBE = 0.5
+# `--update enkf`: ES-MDA's number of assimilation steps (its usual 4, set before any run).
+ES_MDA_STEPS = 4
 
 
 # --------------------------------------------------------------------------------------------
@@ -355,17 +357,20 @@ class Feedback:
     tolerance) and the model's coordinate
     is short of the target by more than half the tolerance, the planner plans and executes a new
     push, from the observed handle (the mean of those observations), for the displacement still
-    wanted, at most `MAX_PUSHES` pushes. With `update="bayes"` that push is planned on the model's
-    draws reweighed by what the pushes so far did (`_reweigh`). An overshoot is final: a push
-    cannot pull. The same for bom's model and the oracle's; only the model differs (the oracle's
-    one draw is unchanged by the reweighing)."""
+    wanted, at most `MAX_PUSHES` pushes. That push is planned on the model's draws conditioned on
+    what the pushes so far did: moved to explain them (`update="enkf"`, `_assimilate`) or
+    reweighed by them (`update="bayes"`, `_reweigh`). An overshoot is final: a push cannot pull.
+    The same for bom's model and the oracle's; only the model differs (the oracle's one draw is
+    left as it is by either update)."""
 
-    def __init__(self, model, task, seed, selection="robust", update="bayes"):
+    def __init__(self, model, task, seed, selection="robust", update="enkf"):
         self.model, self.task, self.selection = model, task, selection
         self.prior, self.update = model, update
         self.pushed = []  # (sub-task, force, hold, model coordinate at its start) per push
         self.moved = []
         self.logw = np.zeros(len(model["damping"]))  # log weights of the prior's draws
+        self.observed = []  # each push's observed displacement (`_assimilate`)
+        self.perturb = np.random.default_rng(seed + 1)  # `_assimilate`'s, apart from the observation noise
         median = median_of(model)
         self.kind = median["kind"]
         self.rng = np.random.default_rng(seed)
@@ -413,6 +418,16 @@ class Feedback:
         self.forces.append(chosen[0])
         self.holds.append(chosen[1])
 
+    def _record(self, q):
+        """Keep the latest push's observed displacement (`q` where it left the part) and, in the
+        JSON's `moved`, what bom's draws said it would be; returns the draws' displacements."""
+        sub, force, hold, q_start = self.pushed[-1]
+        sim, _ = simulate(self.prior, sub, force, hold)
+        self.observed.append(q - q_start)
+        self.moved.append({"observed": q - q_start, "median_model": float(sim[0]),
+                           "draws_q05": float(np.quantile(sim, 0.05)), "draws_q95": float(np.quantile(sim, 0.95))})
+        return sim
+
     def _reweigh(self, q):
         """Bayes' rule on the planner's draws with what the pushes so far did: each draw of the
         prior model (bom's posterior) is weighed by the likelihood of every push's observed
@@ -422,12 +437,8 @@ class Feedback:
         becomes draw 0, the model the next push is planned on."""
         # Called once after each push but the last, `q` where the latest push left the part, so
         # only that push's term is new: the earlier ones are in `logw` already.
-        sub, force, hold, q_start = self.pushed[-1]
-        sim, _ = simulate(self.prior, sub, force, hold)
-        self.logw += -0.5 * ((sim - (q - q_start)) / (0.5 * self.tol)) ** 2
-        # what the latest push did against what bom's draws said it would (the JSON's `moved`)
-        self.moved.append({"observed": q - q_start, "median_model": float(sim[0]),
-                           "draws_q05": float(np.quantile(sim, 0.05)), "draws_q95": float(np.quantile(sim, 0.95))})
+        sim = self._record(q)
+        self.logw += -0.5 * ((sim - self.observed[-1]) / (0.5 * self.tol)) ** 2
         w = np.exp(self.logw - np.max(self.logw))
         w /= np.sum(w)
         n = len(w)
@@ -437,6 +448,36 @@ class Feedback:
         pos = int(np.argmax(idx == int(np.argmax(w))))
         idx[[0, pos]] = idx[[pos, 0]]
         self.model = {k: (v[idx] if isinstance(v, np.ndarray) else v) for k, v in self.prior.items()}
+
+    def _assimilate(self, q):
+        """The ensemble Kalman update of the planner's draws with what the pushes so far did
+        (`--update enkf`; ensemble smoother with multiple data assimilation, ES-MDA: Emerick and
+        Reynolds 2013, Computers & Geosciences 55:3-15). The draws' log inertia, log damping and
+        log Coulomb friction are moved, `ES_MDA_STEPS` times with the observation variance
+        inflated by as many, towards explaining every push's observed displacement
+        (`N(observed | simulated, s^2)`, `s` half the task's tolerance, as in `_reweigh`), each
+        draw with its own perturbed observation (draw 0, the model the next push is planned on,
+        with none). Unlike reweighing, a displacement outside every draw's prediction still moves
+        the draws to it, and the draws keep their spread along what the pushes cannot tell apart
+        (one push near breakaway pins a combination of friction, damping and inertia, not each)."""
+        self._record(q)
+        if len(self.prior["damping"]) < 2:
+            return  # one draw (the oracle's) has no spread to update: it stays as it is
+        names = ("inertia", "damping", "friction")
+        x = np.log(np.maximum(np.stack([self.prior[k] for k in names], axis=1), 1e-9))  # (n, 3)
+        y = np.array(self.observed)  # (pushes,)
+        s2 = (0.5 * self.tol) ** 2
+        n = len(x)
+        for _ in range(ES_MDA_STEPS):
+            model = dict(self.prior, **{k: np.exp(x[:, i]) for i, k in enumerate(names)})
+            pred = np.stack([simulate(model, sub_k, f_k, h_k)[0] for sub_k, f_k, h_k, _ in self.pushed], axis=1)  # (n, pushes)
+            dx, dy = x - x.mean(axis=0), pred - pred.mean(axis=0)
+            c_xy, c_yy = dx.T @ dy / (n - 1), dy.T @ dy / (n - 1)
+            r = ES_MDA_STEPS * s2 * np.eye(len(y))
+            perturbed = y + self.perturb.normal(0.0, math.sqrt(ES_MDA_STEPS * s2), pred.shape)
+            perturbed[0] = y
+            x = x + (perturbed - pred) @ np.linalg.solve(c_yy + r, c_xy.T)
+        self.model = dict(self.prior, **{k: np.exp(x[:, i]) for i, k in enumerate(names)})
 
     def observe(self, t, handle):
         if self.done:
@@ -455,6 +496,8 @@ class Feedback:
                 if self.want - q > 0.5 * self.tol and self.pushes < MAX_PUSHES:
                     if self.update == "bayes":
                         self._reweigh(q)
+                    elif self.update == "enkf":
+                        self._assimilate(q)
                     self._start_push(t, np.mean([o[2] for o in last], axis=0), q)
                 else:
                     self.done = True
@@ -558,7 +601,7 @@ def true_as_arrays(true):
 # --------------------------------------------------------------------------------------------
 
 
-def run_planner(scene, task, model, selection="robust", control="open", seed=0, update="bayes"):
+def run_planner(scene, task, model, selection="robust", control="open", seed=0, update="enkf"):
     if control == "closed":
         ctl = Feedback(model, task, seed, selection, update)
         final, hit = scene.execute_feedback(task, ctl)
@@ -595,7 +638,7 @@ def run_model_free(scene, task):
     return {"success": bool(error <= task["tol"] and not hit), "final_q": final, "error": error, "hit": hit}
 
 
-def evaluate(entry, model_json, draws, selection="robust", control="open", update="bayes"):
+def evaluate(entry, model_json, draws, selection="robust", control="open", update="enkf"):
     """All three planners on one corpus object (a manifest entry) with bom's summary."""
     scene = Scene(entry["seed_used"])
     task = scene.task()
@@ -649,8 +692,9 @@ def main(argv=None):
                     help="bom planner's choice among pushes: most draws within tolerance, or the least force within 0.1 of that")
     ap.add_argument("--control", default="open", choices=["open", "closed"],
                     help="execute each plan open loop, or closed loop on the observed handle (class Feedback)")
-    ap.add_argument("--update", default="bayes", choices=["none", "bayes"],
-                    help="closed loop: plan each later push on the draws reweighed by what the earlier pushes did (Feedback._reweigh)")
+    ap.add_argument("--update", default="enkf", choices=["enkf", "bayes", "none"],
+                    help="closed loop: plan each later push on the draws moved to explain what the earlier pushes did "
+                         "(ensemble Kalman update, Feedback._assimilate), or reweighed by it (Bayes' rule, Feedback._reweigh)")
     ap.add_argument("--only", help="comma-separated object names")
     args = ap.parse_args(argv)
     manifest = json.loads((Path(args.corpus) / "manifest.json").read_text())["objects"]

@@ -11,9 +11,11 @@ push, or the model-free push succeeds (then the baseline would not be one). bom'
 is printed, not asserted: on this object it lands 13.1-13.2 degrees from the target (stop 99,
 contact on or off), outside the 5-degree tolerance and inside three. Closed loop
 (`--control closed`: look, and push again when short), bom's pushes and the oracle's must end
-within tolerance (bom lands 0.2 degrees from the target after two pushes; 1.6 without Bayes' rule
-on its draws, `--update none`), and Bayes' rule on the
-planner's draws after a push (`Feedback._reweigh`) must pick, of three, the draw that explains it.
+within tolerance (bom lands 1.6 degrees from the target after two pushes with the ensemble update
+of its draws, the default; 0.2 with Bayes' rule, `--update bayes`; 1.6 with neither, `--update
+none`; stop 100). Bayes' rule on the planner's draws after a push (`Feedback._reweigh`) must pick,
+of three, the draw that explains it; the ensemble update (`Feedback._assimilate`) must move draws
+that all fall short of a push to explain it better than any of them did.
 """
 import json
 import math
@@ -91,6 +93,25 @@ def main():
     moved, _ = ts.simulate(true, *push[:3])
     probe._reweigh(float(moved[0]))
     print(f"after a push that moved {float(moved[0]):.4f}, draw 0's damping {probe.model['damping'][0]:.4f} (truth {true['damping'][0]:.4f})")
+    # The ensemble Kalman update (`Feedback._assimilate`, the default): 32 draws whose damping's
+    # median is three times the truth's (draw 0 at it), spread over a decade as bom's intervals
+    # are, so that the push moves every draw less than the truth; after it, the planned-on draw 0
+    # misses what the push did by less than half of what the nearest draw missed it by before: no
+    # reweighing of the draws, which can only choose among them, can do that.
+    rng = np.random.default_rng(0)
+    wrong = {k: (np.repeat(v, 32, axis=0) if isinstance(v, np.ndarray) else v) for k, v in true.items()}
+    spread = np.concatenate([[0.0], rng.normal(size=31)])
+    wrong["damping"] = 3.0 * true["damping"][0] * np.exp(0.7 * np.abs(spread))
+    # a longer push than the reweighing test's, so that what it moved is several tolerances
+    long_push = (push[0], 5.0, 1.0, 0.0)
+    moved, _ = ts.simulate(true, *long_push[:3])
+    before, _ = ts.simulate(wrong, *long_push[:3])
+    kalman = ts.Feedback(wrong, task, SEED)
+    kalman.pushed = [long_push]
+    kalman._assimilate(float(moved[0]))
+    after, _ = ts.simulate(kalman.model, *long_push[:3])
+    print(f"ensemble update: the push moved {float(moved[0]):.4f}; the draws said {np.min(before):.4f}-{np.max(before):.4f} "
+          f"before, draw 0 {float(after[0]):.4f} after (damping {kalman.model['damping'][0]:.4f})")
     for p in ("bom", "oracle"):
         r = closed[p]
         print(f"{p:10s} closed loop: success {r['success']} error {k * r.get('error', math.nan):.2f} {unit} "
@@ -100,6 +121,10 @@ def main():
         failures.append(f"the closed loop reads a 0.3 rad turn as {read:.4f}")
     if probe.model["damping"][0] != true["damping"][0]:
         failures.append("after a push the true model explains, the reweighed draws do not plan on it")
+    if not np.max(before) < float(moved[0]) - 2 * task["tol"]:
+        failures.append("the ensemble test's draws do not all fall short of the push by two tolerances")
+    if not abs(float(after[0]) - float(moved[0])) < 0.5 * (float(moved[0]) - np.max(before)):
+        failures.append("after a push, the ensemble update's draw 0 is not twice nearer to it than the nearest draw before")
     if not ctl.tangent(h0) @ np.array(task["hint"]) > 0.9:
         failures.append("the closed loop's direction of motion at the start does not point towards the target")
     if not closed["oracle"]["success"]:
