@@ -477,6 +477,8 @@ class Feedback:
             perturbed = y + self.perturb.normal(0.0, math.sqrt(ES_MDA_STEPS * s2), pred.shape)
             perturbed[0] = y
             x = x + (perturbed - pred) @ np.linalg.solve(c_yy + r, c_xy.T)
+        if not np.all(np.isfinite(x)):
+            return  # an update that diverged is not used: the draws stay as they were
         self.model = dict(self.prior, **{k: np.exp(x[:, i]) for i, k in enumerate(names)})
 
     def observe(self, t, handle):
@@ -722,7 +724,7 @@ def main(argv=None):
     for p in PLANNERS:
         print(f"| {p} | {agg[p]:.3f} |" if agg[p] is not None else f"| {p} | - |")
     if args.json:
-        Path(args.json).write_text(json.dumps({"split": args.split, "control": args.control, "scored": len(scored), "objects": len(rows),
+        Path(args.json).write_text(json.dumps({"split": args.split, "control": args.control, "update": args.update, "scored": len(scored), "objects": len(rows),
                                                "success": agg, "rows": rows}, indent=1) + "\n")
 
 
