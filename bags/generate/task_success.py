@@ -369,7 +369,6 @@ class Feedback:
         self.pushed = []  # (sub-task, force, hold, model coordinate at its start) per push
         self.moved = []
         self.logw = np.zeros(len(model["damping"]))  # log weights of the prior's draws
-        self.observed = []  # each push's observed displacement (`_assimilate`)
         self.perturb = np.random.default_rng(seed + 1)  # `_assimilate`'s, apart from the observation noise
         median = median_of(model)
         self.kind = median["kind"]
@@ -419,11 +418,10 @@ class Feedback:
         self.holds.append(chosen[1])
 
     def _record(self, q):
-        """Keep the latest push's observed displacement (`q` where it left the part) and, in the
-        JSON's `moved`, what bom's draws said it would be; returns the draws' displacements."""
+        """Keep, in the JSON's `moved`, the latest push's observed displacement (`q` where it left
+        the part) and what bom's draws said it would be; returns the draws' displacements."""
         sub, force, hold, q_start = self.pushed[-1]
         sim, _ = simulate(self.prior, sub, force, hold)
-        self.observed.append(q - q_start)
         self.moved.append({"observed": q - q_start, "median_model": float(sim[0]),
                            "draws_q05": float(np.quantile(sim, 0.05)), "draws_q95": float(np.quantile(sim, 0.95))})
         return sim
@@ -438,7 +436,7 @@ class Feedback:
         # Called once after each push but the last, `q` where the latest push left the part, so
         # only that push's term is new: the earlier ones are in `logw` already.
         sim = self._record(q)
-        self.logw += -0.5 * ((sim - self.observed[-1]) / (0.5 * self.tol)) ** 2
+        self.logw += -0.5 * ((sim - self.moved[-1]["observed"]) / (0.5 * self.tol)) ** 2
         w = np.exp(self.logw - np.max(self.logw))
         w /= np.sum(w)
         n = len(w)
@@ -464,22 +462,25 @@ class Feedback:
         if len(self.prior["damping"]) < 2:
             return  # one draw (the oracle's) has no spread to update: it stays as it is
         names = ("inertia", "damping", "friction")
+
+        def with_params(x):
+            return dict(self.prior, **{k: np.exp(x[:, i]) for i, k in enumerate(names)})
+
         x = np.log(np.maximum(np.stack([self.prior[k] for k in names], axis=1), 1e-9))  # (n, 3)
-        y = np.array(self.observed)  # (pushes,)
+        y = np.array([m["observed"] for m in self.moved])  # (pushes,)
         s2 = (0.5 * self.tol) ** 2
+        r = ES_MDA_STEPS * s2 * np.eye(len(y))
         n = len(x)
         for _ in range(ES_MDA_STEPS):
-            model = dict(self.prior, **{k: np.exp(x[:, i]) for i, k in enumerate(names)})
-            pred = np.stack([simulate(model, sub_k, f_k, h_k)[0] for sub_k, f_k, h_k, _ in self.pushed], axis=1)  # (n, pushes)
+            pred = np.stack([simulate(with_params(x), sub_k, f_k, h_k)[0] for sub_k, f_k, h_k, _ in self.pushed], axis=1)  # (n, pushes)
             dx, dy = x - x.mean(axis=0), pred - pred.mean(axis=0)
             c_xy, c_yy = dx.T @ dy / (n - 1), dy.T @ dy / (n - 1)
-            r = ES_MDA_STEPS * s2 * np.eye(len(y))
             perturbed = y + self.perturb.normal(0.0, math.sqrt(ES_MDA_STEPS * s2), pred.shape)
             perturbed[0] = y
             x = x + (perturbed - pred) @ np.linalg.solve(c_yy + r, c_xy.T)
         if not np.all(np.isfinite(x)):
             return  # an update that diverged is not used: the draws stay as they were
-        self.model = dict(self.prior, **{k: np.exp(x[:, i]) for i, k in enumerate(names)})
+        self.model = with_params(x)
 
     def observe(self, t, handle):
         if self.done:

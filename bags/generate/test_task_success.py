@@ -85,7 +85,11 @@ def main():
     # three times and equal to the truth's (the true one last, so that draws left as they came
     # fail); a push that moved the part as the truth predicts makes the true draw the one the
     # next push is planned on.
-    decoys = {k: (np.repeat(v, 3, axis=0) if isinstance(v, np.ndarray) else v) for k, v in true.items()}
+    def repeated(model, n):
+        """`n` copies of a one-draw model's draw."""
+        return {k: (np.repeat(v, n, axis=0) if isinstance(v, np.ndarray) else v) for k, v in model.items()}
+
+    decoys = repeated(true, 3)
     decoys["damping"] = true["damping"][0] * np.array([1 / 3, 3.0, 1.0])
     probe = ts.Feedback(decoys, task, SEED)
     push = (dict(task, target=task["q0"] + ts.PROBE * (task["target"] - task["q0"])), 5.0, 0.2, 0.0)
@@ -99,7 +103,7 @@ def main():
     # misses what the push did by less than half of what the nearest draw missed it by before: no
     # reweighing of the draws, which can only choose among them, can do that.
     rng = np.random.default_rng(0)
-    wrong = {k: (np.repeat(v, 32, axis=0) if isinstance(v, np.ndarray) else v) for k, v in true.items()}
+    wrong = repeated(true, 32)
     spread = np.concatenate([[0.0], rng.normal(size=31)])
     wrong["damping"] = 3.0 * true["damping"][0] * np.exp(0.7 * np.abs(spread))
     # a longer push than the reweighing test's, so that what it moved is several tolerances
