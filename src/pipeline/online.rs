@@ -8,6 +8,9 @@
 //! - A window is *closed* once nothing later can change it: the data have moved past its end by
 //!   the merge gap plus the margin before a following window. [`Online::flush`] closes the last
 //!   one at the end of the stream as replay does at the end of a bag.
+//! - In dynamic mode a cloud waits until the wrench samples up to its stamp are in (at most
+//!   [`WRENCH_WAIT_S`]): the topics arrive in no fixed order, and replay's push gate for a
+//!   cloud sees every sample before it.
 //! - Perception refines the poses (see [`Perception::refine`]) when windows close, with the part
 //!   models as they are then, and keeps a bounded number of frames' points for that.
 //! - Wrenches, part observations and transforms outside the closed windows and older than the
@@ -37,6 +40,9 @@ pub const TF_WAIT_S: f64 = 0.5;
 /// ... or once any input topic has moved this far past it (a frame that no `/tf` message will
 /// ever bring, e.g. with only `/tf_static`, or `/tf` stopped).
 pub const TF_WAIT_MAX_S: f64 = 3.0;
+/// How long a cloud waits for the wrench samples up to its stamp: until any input topic has
+/// moved this far past it \[s\] (0.1 s: three clouds at 30 Hz, twenty wrenches at 200 Hz).
+pub const WRENCH_WAIT_S: f64 = 0.1;
 /// Messages held waiting for transforms at most; beyond, the oldest is dropped with a warning.
 pub const MAX_HELD: usize = 4096;
 /// Registered frames per part kept for the refine pass when a window closes (30 s at 30 Hz).
@@ -143,6 +149,8 @@ pub struct Online {
     force_above: bool,
     force_above_close: bool,
     saw_wrench: bool,
+    /// Whether a plausible wrench has arrived (it may still wait for its transform).
+    wrench_heard: bool,
     held: VecDeque<Held>,
     /// Each input topic's clock (a stamp far ahead waits for the next message; see
     /// [`input::stamps`]).
@@ -179,6 +187,7 @@ impl Online {
             force_above: false,
             force_above_close: false,
             saw_wrench: false,
+            wrench_heard: false,
             held: VecDeque::new(),
             stamps: HashMap::new(),
             clock: Clock::START,
@@ -282,6 +291,7 @@ impl Online {
             return Vec::new();
         }
         self.clock.advance(msg.header.stamp.seconds(), self.cfg.input.stamp_jump_s);
+        self.wrench_heard = true;
         self.held.push_back(Held::Wrench { topic: topic.into(), msg: msg.clone() });
         self.release()
     }
@@ -294,14 +304,26 @@ impl Online {
             let h = self.held.pop_front().expect("non-empty");
             self.diag.warn(h.topic(), "waiting for transform", &format!("more than {MAX_HELD} messages held; oldest (t={:.3} s) dropped", h.stamp()));
         }
-        while let Some(h) = self.held.front() {
-            let (frame, stamp) = match h {
+        loop {
+            // A cloud waits for the wrench samples up to its stamp (perception's push gate and
+            // the pushed part's vote read them); the wrenches behind it go first.
+            let i = match self.held.front() {
+                None => break,
+                Some(Held::Cloud { header, .. }) if self.waits_for_wrench(header.stamp.seconds()) => {
+                    match self.held.iter().position(|h| matches!(h, Held::Wrench { .. })) {
+                        Some(i) => i,
+                        None => break,
+                    }
+                }
+                Some(_) => 0,
+            };
+            let (frame, stamp) = match &self.held[i] {
                 Held::Cloud { header, .. } => (header.frame_id.clone(), header.stamp),
                 Held::Wrench { msg, .. } => (msg.header.frame_id.clone(), msg.header.stamp),
             };
             match self.tf.lookup(&self.cfg.fixed_frame, &frame, stamp) {
                 Ok(iso) => {
-                    let h = self.held.pop_front().expect("non-empty");
+                    let h = self.held.remove(i).expect("in range");
                     let (topic, t, ready) = match h {
                         Held::Cloud { topic, header, points } => {
                             let t = header.stamp.seconds();
@@ -319,14 +341,14 @@ impl Online {
                     }
                 }
                 Err(e) if self.tf_clock.now - stamp.seconds() > TF_WAIT_S || self.clock.now - stamp.seconds() > TF_WAIT_MAX_S => {
-                    let h = self.held.pop_front().expect("non-empty");
+                    let h = self.held.remove(i).expect("in range");
                     let what = if matches!(h, Held::Cloud { .. }) { "cloud" } else { "wrench" };
                     self.diag.warn(&format!("{}.header.frame_id", h.topic()), "unknown frame", &format!("{e}; {what} skipped"));
                 }
                 // Far ahead of the stream and not transformable: waiting for it would hold up
                 // every message behind it (a stamp glitch on a cloud in a moving frame).
                 Err(_) if stamp.seconds() - self.clock.now > self.cfg.input.stamp_jump_s => {
-                    let h = self.held.pop_front().expect("non-empty");
+                    let h = self.held.remove(i).expect("in range");
                     let ahead = stamp.seconds() - self.clock.now;
                     self.diag.warn(
                         h.topic(),
@@ -338,6 +360,18 @@ impl Online {
             }
         }
         out
+    }
+
+    /// Whether a cloud stamped `t` \[s\] waits for wrench samples: once the stream has any, until
+    /// one at or after `t` is in, or the stream has moved [`WRENCH_WAIT_S`] past `t` (a wrench
+    /// stream that stopped or lags). A stamp far ahead of the stream (`input.stamp_jump_s`) does
+    /// not wait: no wrench may ever reach it, and its topic's stamp guard judges it. DDS
+    /// delivers each topic in order but not the topics in step, and the node takes whichever is
+    /// ready: without the wait a cloud could meet its push gate without the samples just before
+    /// it, which replay always has.
+    fn waits_for_wrench(&self, t: f64) -> bool {
+        let far_ahead = t - self.clock.now > self.cfg.input.stamp_jump_s;
+        self.wrench_heard && !far_ahead && self.wrenches.last().is_none_or(|w| w.stamp < t) && self.clock.now - t <= WRENCH_WAIT_S
     }
 
     /// Use a cloud or wrench whose stamp its topic's clock accepted.
