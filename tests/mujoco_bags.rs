@@ -357,8 +357,8 @@ fn an_effect_the_later_windows_refute_is_retracted() {
 /// A wrong effect adopted on early windows does not survive all of them: `drawer_limit_undeclared`'s
 /// drawer is stopped by an undeclared joint limit, and a spring partly stands in for it (in the
 /// project's CI at stop 100 the node adopted one and kept it to the end: held-out RMSE 63 mm
-/// without it, 24 mm with it, where replay's stops alone give 2.5 mm; the cause was the node's
-/// topic order, `tests/online.rs` `a_late_wrench_topic_changes_nothing`). On replay's evidence
+/// without it, 24 mm with it, where replay's stops alone give 2.5 mm; the likely cause, the
+/// node's topic order, is fixed: `tests/online.rs` `a_late_wrench_topic_changes_nothing`). On replay's evidence
 /// of all four windows, starting from the spring adopted, criticism must retract it (the
 /// adoption rule measured again) and adopt the stops, with the error falling, and the refitted
 /// model must keep only the stops.
