@@ -687,6 +687,7 @@ impl<'a> Simulation<'a> {
                 frame_substep: vec![0, self.steps - 1],
                 pushed: None,
                 continues: false,
+                hand_off: false,
                 h: self.h,
                 force,
                 torque,

@@ -99,6 +99,12 @@ impl JointSeries {
                 if win.pushed.is_some_and(|p| p != i && desc.contains(&p) && !rigidly_attached(post, p, i)) {
                     return None;
                 }
+                // A push whose hand is on something other than the part it was given to (an
+                // unseen part, farther than the contact's reach from every point of this one)
+                // moves this joint by an unknown share of the measured wrench: no prediction.
+                if win.hand_off && win.pushed.is_some_and(|p| p == i || desc.contains(&p)) {
+                    return None;
+                }
                 let keep: Vec<usize> = (0..win.frames.len()).filter(|&k| !q[win.frames[k]].is_nan()).collect();
                 if keep.len() < 2 {
                     return None;

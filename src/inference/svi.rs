@@ -1814,6 +1814,7 @@ mod tests {
             rest_before: vec![],
             pushed: None,
             continues,
+            hand_off: false,
             h: 0.005,
             force: vec![],
             torque: vec![],

@@ -816,6 +816,7 @@ mod tests {
             frame_substep: (0..13).map(|k| ((k as f64 * 5.0 / 30.0) / h).round() as usize).collect(),
             pushed: Some(0),
             continues: false,
+            hand_off: false,
             h,
             force: (0..n).map(|i| if (i as f64) * h < 0.8 { Vector3::new(0.0, force, 0.0) } else { Vector3::zeros() }).collect(),
             torque: vec![Vector3::zeros(); n],

@@ -201,6 +201,12 @@ pub struct WindowEvidence {
     /// [`Grid::max_unobserved_s`]) since the previous window: only then does the joint start this
     /// window where the previous one left it. False for the first window.
     pub continues: bool,
+    /// Whether the push's contact lies [`CONTACT_REACH_M`] or more from every point of the pushed
+    /// part's model (reference configuration) at the first pushing frame where the part is seen:
+    /// the hand is on something else, often a part the camera never sees (a box lid inside a
+    /// drawer), and the measured wrench does not act on the pushed part as the physics applies
+    /// it. False when not pushed or unknown.
+    pub hand_off: bool,
     /// Integration step \[s\].
     pub h: f64,
     /// Per integration step: force \[N\], torque \[N·m\] and point of application \[m\], fixed frame
@@ -382,6 +388,13 @@ impl Evidence {
             let (a, b) = (times[*dynamic[w - 1].frames.last().expect("a window has frames")], times[dynamic[w].frames[0]]);
             dynamic[w].continues = longest_gap(&seen, a, b) <= grid.max_unobserved_s;
         }
+        for (w, win) in dynamic.iter_mut().enumerate() {
+            let Some(p) = win.pushed else { continue };
+            win.hand_off = hand_off(&parts[p], models[p], win, grid);
+            if win.hand_off {
+                tracing::debug!("window {w}: the hand is {CONTACT_REACH_M} m or more from every point of part {}, the part nearest it", parts[p].label);
+            }
+        }
         if grid.contact_sd_m > 0.0 {
             for (w, win) in dynamic.iter().enumerate() {
                 let Some(p) = win.pushed else { continue };
@@ -470,6 +483,28 @@ fn contact_observations(part: &mut PartSeries, points: &[Vector3<f64>], win: &Wi
     }
 }
 
+/// Whether the hand is off the pushed part in window `win` ([`WindowEvidence::hand_off`]): the
+/// contact point at the first pushing grid frame where the part is seen, carried into the part's
+/// reference configuration, lies [`CONTACT_REACH_M`] or more from every one of its model `points`.
+/// False without model points or without such a frame.
+fn hand_off(part: &PartSeries, points: &[Vector3<f64>], win: &WindowEvidence, grid: &Grid) -> bool {
+    if points.is_empty() {
+        return false;
+    }
+    for (k, &f) in win.frames.iter().enumerate() {
+        let step = win.frame_substep[k];
+        let (Some(force), Some(point)) = (win.force.get(step), win.point.get(step)) else { break };
+        // Written so that a NaN force does not count as a push.
+        if !(force.norm() >= grid.contact_force_n) || !point.iter().all(|v| v.is_finite()) {
+            continue;
+        }
+        let Some(pose) = part.disp.get(f).copied().flatten() else { continue };
+        let x = (pose.inverse() * nalgebra::Point3::from(*point)).coords;
+        return !points.iter().any(|p| (p - x).norm_squared() <= CONTACT_REACH_M * CONTACT_REACH_M);
+    }
+    false
+}
+
 /// The farthest the contact may lie from the pushed part's model points for it to observe the
 /// part \[m\]: a handle that the segmentation leaves out stands a few centimetres off the panel;
 /// farther, the hand is on something else (the part nearest the contact is not always the one
@@ -486,7 +521,7 @@ fn window_evidence(times: &[f64], frames: Vec<usize>, rest: Vec<usize>, rest_bef
     let frame_substep: Vec<usize> = frames.iter().map(|&f| ((times[f] - t0) / h).round() as usize).collect();
     let n = ((times[last] - t0) / h).round() as usize + 1;
     let (force, torque, point) = wrench_on_steps(wrenches, t0, n, h);
-    Some(WindowEvidence { frames, rest, rest_before, frame_substep, pushed, continues: false, h, force, torque, point })
+    Some(WindowEvidence { frames, rest, rest_before, frame_substep, pushed, continues: false, hand_off: false, h, force, torque, point })
 }
 
 /// Force, torque and point of application per integration step ([`wrench_on_steps`]).
@@ -708,7 +743,7 @@ pub fn coordinate_prior(ev: &Evidence, m: &[f64], s: &[f64], vm: f64, vs: f64, c
 
 #[cfg(test)]
 mod tests {
-    use super::{contact_observations, longest_gap, window_start_prior, Grid, PartSeries, WindowEvidence};
+    use super::{contact_observations, hand_off, longest_gap, window_start_prior, Grid, PartSeries, WindowEvidence};
     use crate::model::ModelConfig;
     use nalgebra::{Isometry3, Matrix3, Translation3, UnitQuaternion, Vector3};
 
@@ -717,7 +752,8 @@ mod tests {
     /// the material point (the part's reference configuration) and observes nothing, each later
     /// frame observes it. A push that starts slowly: the median over the frames before the hand
     /// has moved `contact_sd_m` places the point, so that one frame's registration error does not
-    /// move it, and every frame observes. A part far from the hand is not observed.
+    /// move it, and every frame observes. A part far from the hand is not observed, and its
+    /// window says the hand is off it ([`hand_off`]).
     #[test]
     fn contact_points_anchor_each_push_on_the_part() {
         let k = 8;
@@ -748,6 +784,7 @@ mod tests {
             frame_substep: (0..k).collect(),
             pushed: Some(0),
             continues: false,
+            hand_off: false,
             h: 0.01,
             force: magnitude.iter().map(|&f| Vector3::new(f, 0.0, 0.0)).collect(),
             torque: vec![Vector3::zeros(); k],
@@ -767,6 +804,10 @@ mod tests {
             voxel_m: 0.005,
         };
         let near = [Vector3::new(0.3, 0.0, 0.1), Vector3::new(2.0, 0.0, 0.0)];
+        // Whether the hand is on the part: judged at frame 2, the first pushed frame it is seen in.
+        assert!(!hand_off(&part, &near, &win, &grid), "5 cm from a point of the part");
+        assert!(hand_off(&part, &[Vector3::new(0.3, 0.2, 0.1), Vector3::new(2.0, 0.0, 0.0)], &win, &grid), "15 cm from every point");
+        assert!(!hand_off(&part, &[], &win, &grid), "no model points: not known to be off");
         contact_observations(&mut part, &[], &win, &grid);
         assert!((0..k).all(|t| part.contact_at(t).is_none()), "no point of the part near the hand");
         contact_observations(&mut part, &near, &win, &grid);
