@@ -17,7 +17,8 @@ contact), as the recorder checks its recordings.
 Three planners, each executed on the true object open loop (`--control open`, the default) or,
 for `bom` and `oracle`, closed loop (`--control closed`, class `Feedback`: the open-loop push
 halfway, then the part's coordinate observed through the model at 30 Hz with 2 mm noise, and a new
-plan and push whenever the part rests short of the target, planned on the draws conditioned on what
+plan and push whenever the part rests short of the target, halfway again for what is still wanted
+but the last push allowed, which goes all the way, planned on the draws conditioned on what
 the earlier pushes did: moved by an ensemble Kalman update, `--update enkf`, the default; or
 reweighed by Bayes' rule, `--update bayes`; `--update none` keeps bom's draws as they came):
 - `bom`: the posterior's MAP joint type, its axis, the part's centre of mass and unit inertia, and
@@ -76,8 +77,9 @@ OBS_NOISE_M = 0.002
 REST_OBS = 15
 MAX_PUSHES = 4
 FEEDBACK_MAX_S = 30.0
-# The first push of the closed loop aims at this share of the way (chosen on `tune`, the one
-# value tried): an overshoot cannot be undone, a push that falls short can be followed by another.
+# Every push of the closed loop but the last allowed aims at this share of what is still wanted
+# (chosen on `tune` for the first push, the one value tried; stop 103 applied it to the later
+# pushes too): an overshoot cannot be undone, a push that falls short can be followed by another.
 PROBE = 0.5
 # `--update enkf`: ES-MDA's number of assimilation steps (its usual 4, set before any run).
 ES_MDA_STEPS = 4
@@ -348,20 +350,21 @@ def force_along_plan(model, task, force, hold):
 
 
 class Feedback:
-    """The closed-loop command (`--control closed`): plan, push, look, push again. The first push
-    is the open-loop plan (`plan`, `force_along_plan`) for `PROBE` of the way to the target (an
-    overshoot is final, falling short is not). Then the handle point is observed at
-    `OBS_HZ` with `OBS_NOISE_M` noise, and the part's coordinate in the model (angle about the
-    model's axis, or displacement along it) is read from it; once the part rests (over the last
-    `REST_OBS` observations, the means of the first and last thirds differ by less than a quarter
-    tolerance) and the model's coordinate
-    is short of the target by more than half the tolerance, the planner plans and executes a new
-    push, from the observed handle (the mean of those observations), for the displacement still
-    wanted, at most `MAX_PUSHES` pushes. That push is planned on the model's draws conditioned on
-    what the pushes so far did: moved to explain them (`update="enkf"`, `_assimilate`) or
-    reweighed by them (`update="bayes"`, `_reweigh`). An overshoot is final: a push cannot pull.
-    The same for bom's model and the oracle's; only the model differs (the oracle's one draw is
-    left as it is by either update)."""
+    """The closed-loop command (`--control closed`): plan, push, look, push again. Each push is
+    the open-loop plan (`plan`, `force_along_plan`) for `PROBE` of what is still wanted, the first
+    from the initial state, the `MAX_PUSHES`-th (the last allowed) for all of it: an overshoot is
+    final and falling short is not, and a push planned on draws that the last push may have just
+    shown wrong is no safer to send the whole way than the first (stop 103). Then the handle
+    point is observed at `OBS_HZ` with `OBS_NOISE_M` noise, and the part's coordinate in the model
+    (angle about the model's axis, or displacement along it) is read from it; once the part rests
+    (over the last `REST_OBS` observations, the means of the first and last thirds differ by less
+    than a quarter tolerance) and the model's coordinate is short of the target by more than half
+    the tolerance, the planner plans and executes a new push from the observed handle (the mean of
+    those observations). That push is planned on the model's draws conditioned on what the pushes
+    so far did: moved to explain them (`update="enkf"`, `_assimilate`) or reweighed by them
+    (`update="bayes"`, `_reweigh`). An overshoot is final: a push cannot pull. The same for bom's
+    model and the oracle's; only the model differs (the oracle's one draw is left as it is by
+    either update)."""
 
     def __init__(self, model, task, seed, selection="robust", update="enkf"):
         self.model, self.task, self.selection = model, task, selection
@@ -400,10 +403,12 @@ class Feedback:
         return t / max(np.linalg.norm(t), 1e-12)
 
     def _start_push(self, t, h, q):
+        # `PROBE` of what is still wanted, all of it on the last push allowed
+        share = 1.0 if self.pushes == MAX_PUSHES - 1 else PROBE
         if self.pushes == 0:
-            sub = dict(self.task, target=self.task["q0"] + PROBE * (self.task["target"] - self.task["q0"]))
+            sub = dict(self.task, target=self.task["q0"] + share * (self.task["target"] - self.task["q0"]))
         else:
-            sub = dict(self.task, handle=h.tolist(), hint=self.tangent(h).tolist(), q0=0.0, target=self.want - q)
+            sub = dict(self.task, handle=h.tolist(), hint=self.tangent(h).tolist(), q0=0.0, target=share * (self.want - q))
         chosen = plan(self.model, sub, self.selection)
         if chosen is None:
             self.done = True

@@ -11,9 +11,10 @@ push, or the model-free push succeeds (then the baseline would not be one). bom'
 is printed, not asserted: on this object it lands 13.1-13.2 degrees from the target (stop 99,
 contact on or off), outside the 5-degree tolerance and inside three. Closed loop
 (`--control closed`: look, and push again when short), bom's pushes and the oracle's must end
-within tolerance (bom lands 1.6 degrees from the target after two pushes with the ensemble update
-of its draws, the default; 0.2 with Bayes' rule, `--update bayes`; 1.6 with neither, `--update
-none`; stop 100). Bayes' rule on the planner's draws after a push (`Feedback._reweigh`) must pick,
+within tolerance (bom lands 2.4 degrees from the target after three pushes with the ensemble
+update of its draws, the default; 1.7 after three with Bayes' rule, `--update bayes`; 0.9 after
+four with neither, `--update none`; stop 103, every push but the last half of what is still
+wanted). Bayes' rule on the planner's draws after a push (`Feedback._reweigh`) must pick,
 of three, the draw that explains it; the ensemble update (`Feedback._assimilate`) must move draws
 that all fall short of a push to explain it better than any of them did.
 """
