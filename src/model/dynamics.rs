@@ -493,8 +493,12 @@ fn simulate_scaled<T: Real>(
     if !simulated {
         return None;
     }
-    let mut bodies = vec![(kp.mass, geom.com, geom.unit_inertia)];
-    bodies.extend(geom.subtree.iter().cloned());
+    // `generalised_inertia` takes each body's inertia about its centre of mass in kg·m²; the
+    // geometry holds it per kilogram (perception's hull model), so it scales with the body's mass.
+    // (Until stop 103 it did not: a light part's inertia had a floor of one kilogram's rotational
+    // inertia, whatever its mass, and its mass went wherever the floor left it.)
+    let mut bodies = vec![(kp.mass, geom.com, geom.unit_inertia.map(|u| u * kp.mass))];
+    bodies.extend(geom.subtree.iter().map(|&(m, com, unit)| (m, com, unit.map(|u| u * m))));
     let (d, point) = (&geom.direction, &geom.point);
     let inertia = generalised_inertia(kind, d, point, &bodies);
     let tau: Vec<T> = (0..last)
@@ -867,7 +871,7 @@ mod tests {
         let win = push_window(cfg, 6.0);
         let (h, n) = (cfg.step_s, win.force.len());
         let truth = [(1.5f64 / 1.0).ln() / 1.5, (0.8f64 / 1.0).ln() / 1.5, (0.5f64).ln() / 1.5];
-        let inertia = generalised_inertia(JointKind::Revolute, &joint.direction, &joint.point, &[(0.5, joint.com, unit_inertia)]);
+        let inertia = generalised_inertia(JointKind::Revolute, &joint.direction, &joint.point, &[(0.5, joint.com, unit_inertia * 0.5)]);
         let tau: Vec<f64> = (0..n).map(|i| if (i as f64) * h < 0.8 { 6.0 * 0.5 } else { 0.0 }).collect();
         let mut sim = vec![0.0];
         sim.extend(JointDynamics::new(inertia, 1.5, 0.8, 0.0, 0.0).simulate(0.0, 0.0, &tau, h, cfg.friction_law));

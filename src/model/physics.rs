@@ -501,9 +501,10 @@ impl<T: Real> JointDynamics<T> {
     }
 }
 
-/// Generalised inertia of rigid bodies `(mass, centre of mass, inertia about it)` about a revolute
-/// axis (unit `axis` through `point`: `sum m (|r_perp|^2 + axis^T I_c axis)`) or along a prismatic
-/// one (`sum m`).
+/// Generalised inertia of rigid bodies `(mass [kg], centre of mass [m], inertia about the centre
+/// of mass [kg·m²])` about a revolute axis (unit `axis` through `point`:
+/// `sum (m |r_perp|^2 + axis^T I_c axis)`, the parallel-axis theorem) or along a prismatic one
+/// (`sum m`). An inertia per kilogram (perception's hull model) is multiplied by the mass first.
 pub fn generalised_inertia<T: Real>(joint: JointKind, axis: &Vector3<T>, point: &Vector3<T>, bodies: &[(T, Vector3<T>, Matrix3<T>)]) -> T {
     bodies.iter().fold(c::<T>(0.0), |acc, (m, com, inertia)| match joint {
         JointKind::Rigid => acc,
