@@ -494,9 +494,8 @@ fn simulate_scaled<T: Real>(
         return None;
     }
     // `generalised_inertia` takes each body's inertia about its centre of mass in kg·m²; the
-    // geometry holds it per kilogram (perception's hull model), so it scales with the body's mass.
-    // (Until stop 103 it did not: a light part's inertia had a floor of one kilogram's rotational
-    // inertia, whatever its mass, and its mass went wherever the floor left it.)
+    // geometry holds it per kilogram (perception's hull model), so it scales with the body's mass
+    // (unscaled, every revolute part had a floor of one kilogram's rotational inertia).
     let mut bodies = vec![(kp.mass, geom.com, geom.unit_inertia.map(|u| u * kp.mass))];
     bodies.extend(geom.subtree.iter().map(|&(m, com, unit)| (m, com, unit.map(|u| u * m))));
     let (d, point) = (&geom.direction, &geom.point);
@@ -877,6 +876,25 @@ mod tests {
         sim.extend(JointDynamics::new(inertia, 1.5, 0.8, 0.0, 0.0).simulate(0.0, 0.0, &tau, h, cfg.friction_law));
         let q = win.frame_substep.iter().map(|&s| sim[s] * 0.3).collect();
         (win, q, truth)
+    }
+
+    /// A revolute part's rotational inertia scales with its mass (`m (|r_perp|^2 + d^T J d)`,
+    /// `J` per kilogram): the physics prior of a 0.5 kg door's push is highest at 0.5 kg, not at
+    /// a lighter or a heavier door. Until stop 103 the hull's `J` entered unscaled, a floor of one
+    /// kilogram's rotational inertia, and the mass that reproduces this push was about 0.39 kg.
+    #[test]
+    fn a_revolute_parts_inertia_scales_with_its_mass() {
+        let cfg = DynamicsConfig::default();
+        let joint = door(Vector3::z());
+        let unit_inertia = Matrix3::from_diagonal(&Vector3::new(0.01, 0.01, 0.02));
+        let jw = JointInWindow { joint: &joint, com: joint.com, unit_inertia, subtree: vec![], pushed: true, effects: EffectSet::default() };
+        let (win, q, truth) = simulated_push(&cfg, &joint, unit_inertia);
+        let at = |dm: f64| window_prior(&jw, &win, &q, None, &[truth[0], truth[1], truth[2] + dm, -1.0], &cfg).0;
+        let best = at(0.0);
+        for dm in [0.15, -0.15] {
+            println!("mass xi {dm:+}: {:.2} nats below the truth's", best - at(dm));
+            assert!(at(dm) < best - 1.0, "mass xi {dm:+}: {} against {best} at the truth", at(dm));
+        }
     }
 
     /// A pushed door's coordinates: the prior prefers the damping and friction that produced
