@@ -295,8 +295,10 @@ fn start_nuts(cfg: &Config, job: Arc<Job>, fitted: crate::inference::svi::Fitted
     tokio::spawn(async move {
         let j = job.clone();
         let res = tokio::task::spawn_blocking(move || {
-            let ev = j.evidence(&cfg, &effects);
-            crate::inference::nuts::sample(&ev, &cfg.model, &fitted, &cfg.nuts)
+            below_io(move || {
+                let ev = j.evidence(&cfg, &effects);
+                crate::inference::nuts::sample(&ev, &cfg.model, &fitted, &cfg.nuts)
+            })
         })
         .await;
         let update = match res {
@@ -435,7 +437,7 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
                 // Stage 1: BOM-SVI; its posterior is published at once.
                 let job = Arc::new(job);
                 let (c, w, fx, j) = (cfg.clone(), warm.take(), effects.clone(), job.clone());
-                let fitted = match tokio::task::spawn_blocking(move || j.fit(&c, w.as_ref(), &fx)).await {
+                let fitted = match tokio::task::spawn_blocking(move || below_io(|| j.fit(&c, w.as_ref(), &fx))).await {
                     Ok(Some(f)) => f,
                     Ok(None) => {
                         tracing::warn!("inference: no part was observed inside a window; no posterior");
@@ -457,8 +459,10 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
                 // Stage 2: model criticism, and the refit when it adopts an effect.
                 let (c, mut fx, j) = (cfg.clone(), effects.clone(), job.clone());
                 let res = tokio::task::spawn_blocking(move || {
-                    let (criticism, refit) = j.criticise(&fitted.0, &fitted.1, &c, &mut fx);
-                    (fitted.1, criticism, refit, fx)
+                    below_io(move || {
+                        let (criticism, refit) = j.criticise(&fitted.0, &fitted.1, &c, &mut fx);
+                        (fitted.1, criticism, refit, fx)
+                    })
                 })
                 .await;
                 let update = match res {
@@ -550,7 +554,9 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
                     }
                     Err(e) => on.diag.warn(&points_topic, "undecodable message", &format!("{e:?}; message skipped")),
                 }
-                if guarded(&mut on, &points_topic, |on| on.close_windows()) > 0 {
+                let closed = guarded(&mut on, &points_topic, |on| on.close_windows());
+                if closed > 0 {
+                    log_closed(&on, closed);
                     submit(&on, &mut report);
                 }
             }
@@ -563,7 +569,9 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
                     }
                     Err(e) => on.diag.warn(&wrench_topic, "undecodable message", &format!("{e:?}; message skipped")),
                 }
-                if guarded(&mut on, &wrench_topic, |on| on.close_windows()) > 0 {
+                let closed = guarded(&mut on, &wrench_topic, |on| on.close_windows());
+                if closed > 0 {
+                    log_closed(&on, closed);
                     submit(&on, &mut report);
                 }
             }
@@ -602,7 +610,9 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
     }
 
     // End of stream: close open windows, let the worker finish, publish the last model.
-    if guarded(&mut on, &points_topic, |on| on.flush()) > 0 {
+    let closed = guarded(&mut on, &points_topic, |on| on.flush());
+    if closed > 0 {
+        log_closed(&on, closed);
         submit(&on, &mut report);
     }
     loop {
@@ -641,6 +651,44 @@ async fn run_async(opts: NodeOptionsBom) -> Result<NodeReport, NodeError> {
     }
     drop(context);
     Ok(report)
+}
+
+/// The nice value (Linux, 0-19) of the threads that run BOM-SVI, model criticism and BOM-NUTS;
+/// the receive loop and the DDS threads keep the node's own (0). Inference fills every core for
+/// seconds at a time, while the sensor streams cannot wait: a DDS receive thread that does not
+/// get the CPU loses datagrams (on loopback the kernel drops them when a socket's buffer is full),
+/// and a reliable stream then stalls until the writer repairs it. Inference can wait. (Not enough
+/// alone: with it, two of eleven interop runs at stop 104 still saw `/tf` seconds late; the waits
+/// of [`crate::pipeline::online`] are what keep the node's evidence equal to replay's.)
+pub const WORKER_NICE: i32 = 10;
+
+/// Run `f` on a thread of its own at [`WORKER_NICE`] (threads it starts inherit the priority);
+/// a panic in `f` resumes on the caller. Raising a thread's nice value needs no privilege; it
+/// could not be lowered again, hence a fresh thread rather than tokio's pooled one.
+fn below_io<R: Send>(f: impl FnOnce() -> R + Send) -> R {
+    std::thread::scope(|s| {
+        s.spawn(|| {
+            // SAFETY: setpriority on this thread's own id (Linux: PRIO_PROCESS with a thread id
+            // sets that thread's nice value); no memory is passed.
+            let r = unsafe { libc::setpriority(libc::PRIO_PROCESS, libc::syscall(libc::SYS_gettid) as libc::id_t, WORKER_NICE) };
+            if r != 0 {
+                tracing::debug!("inference threads keep the node's priority: setpriority failed ({})", std::io::Error::last_os_error());
+            }
+            f()
+        })
+        .join()
+        .unwrap_or_else(|e| std::panic::resume_unwind(e))
+    })
+}
+
+/// One info line per window of the `n` that just closed (stream time, the pushed part): what a
+/// comparison with `bom replay`'s `windows` needs when the node's model differs from it.
+fn log_closed(on: &Online, n: usize) {
+    let all = on.windows();
+    for (k, w) in all.iter().enumerate().skip(all.len().saturating_sub(n)) {
+        let part = w.pushed_part.map_or("none".to_string(), |p| p.to_string());
+        tracing::info!("window {} closed: [{:.3}, {:.3}] s, pushed part {part}", k + 1 + on.windows_forgotten(), w.start, w.end);
+    }
 }
 
 /// CPU time of this thread \[s\] (perception cost, independent of the other threads' load).

@@ -19,7 +19,16 @@ pub enum TfError {
     #[error("transform '{parent}' -> '{child}' rejected: {why}")]
     Rejected { parent: String, child: String, why: String },
     #[error("no transform from '{target}' to '{source_frame}' at t={stamp:.3} s: {why}")]
-    Lookup { target: String, source_frame: String, stamp: f64, why: String },
+    Lookup {
+        target: String,
+        source_frame: String,
+        stamp: f64,
+        why: String,
+        /// The chain is known and a frame on it has transforms up to a time before `stamp` only:
+        /// its transform at `stamp` has not come *yet* (latency), as opposed to an unknown frame,
+        /// disconnected frames or a stamp before the buffered interval.
+        late: bool,
+    },
 }
 
 /// Time-stamped transforms between frames.
@@ -88,7 +97,8 @@ impl TfBuffer {
     ///
     /// # Errors
     /// [`TfError::Lookup`] for an unknown frame, frames not connected, or a stamp outside the
-    /// buffered interval of a dynamic transform on the chain (no extrapolation).
+    /// buffered interval of a dynamic transform on the chain (no extrapolation; `late` when the
+    /// stamp is after it).
     pub fn lookup(&self, target: &str, source: &str, stamp: Time) -> Result<Isometry3<f64>, TfError> {
         let (target, source) = (frame(target), frame(source));
         if target == source {
@@ -97,11 +107,10 @@ impl TfBuffer {
         let t = self
             .registry
             .get_transform(target, source, Timestamp::from_nanos(stamp.nanos()))
-            .map_err(|e| TfError::Lookup {
-                target: target.into(),
-                source_frame: source.into(),
-                stamp: stamp.seconds(),
-                why: e.to_string(),
+            .map_err(|e| {
+                let asked = Timestamp::from_nanos(stamp.nanos());
+                let late = matches!(&e, transforms::errors::RegistryError::NotFoundAt { covered: Some((_, end)), .. } if *end < asked);
+                TfError::Lookup { target: target.into(), source_frame: source.into(), stamp: stamp.seconds(), why: e.to_string(), late }
             })?;
         let (p, q) = (t.translation(), t.rotation());
         Ok(Isometry3::from_parts(
