@@ -343,10 +343,10 @@ fn the_physics_at_the_true_parameters_follows_every_push() {
 /// Criticism revises itself: an effect adopted earlier is measured again on all windows at every
 /// later update and retracted when it no longer meets the adoption rule there (decisive ELBO
 /// gain, held-out error cut to `max_error_ratio`). `microwave_spring` (its spring declared) with
-/// quadratic damping adopted on its door, a wrong effect its first windows once took up (until
-/// stop 103 the replay itself adopted it there, tracked with boundary points at weight 0.2, the
+/// quadratic damping adopted on its door, a wrong effect its first windows once took up (before
+/// stop 104 the replay itself adopted it there, tracked with boundary points at weight 0.2, the
 /// rule at `max_error_ratio` 0.8 and the hand's track off; with the rotational inertia scaled by
-/// the mass, stop 103, it adopts nothing, so the test starts from the adopted effect, as the
+/// the mass, stop 104, it adopts nothing, so the test starts from the adopted effect, as the
 /// drawer's below does): criticism on all four windows, default settings, must retract the
 /// damping, report no finding whose error does not fall, and leave the refitted model with its
 /// declared spring only (measured: the door's residual is then 5.7 mm, unexplained).

@@ -880,7 +880,7 @@ mod tests {
 
     /// A revolute part's rotational inertia scales with its mass (`m (|r_perp|^2 + d^T J d)`,
     /// `J` per kilogram): the physics prior of a 0.5 kg door's push is highest at 0.5 kg, not at
-    /// a lighter or a heavier door. Until stop 103 the hull's `J` entered unscaled, a floor of one
+    /// a lighter or a heavier door. Before stop 104 the hull's `J` entered unscaled, a floor of one
     /// kilogram's rotational inertia, and the mass that reproduces this push was about 0.39 kg.
     #[test]
     fn a_revolute_parts_inertia_scales_with_its_mass() {
