@@ -104,11 +104,11 @@ impl TfBuffer {
         if target == source {
             return Ok(Isometry3::identity());
         }
+        let asked = Timestamp::from_nanos(stamp.nanos());
         let t = self
             .registry
-            .get_transform(target, source, Timestamp::from_nanos(stamp.nanos()))
+            .get_transform(target, source, asked)
             .map_err(|e| {
-                let asked = Timestamp::from_nanos(stamp.nanos());
                 let late = matches!(&e, transforms::errors::RegistryError::NotFoundAt { covered: Some((_, end)), .. } if *end < asked);
                 TfError::Lookup { target: target.into(), source_frame: source.into(), stamp: stamp.seconds(), why: e.to_string(), late }
             })?;
