@@ -5,7 +5,7 @@
 //! the bag calls the fixed frame `world`. Around each pose a cloud of the tracked part is
 //! synthesised: a `grid x grid` lattice over the `width x height` rectangle in the pose's x-y
 //! plane when given, else over a 5 cm square patch; for `x y z` lines, whose orientation is
-//! unknown, a 5 cm cube of points (see [`synthesize`]). Blank lines and `#` comments are skipped.
+//! unknown, points on a sphere of 2.5 cm radius (see [`synthesize`]). Blank lines and `#` comments are skipped.
 //!
 //! Several files become several parts of one bag, labels 1, 2, ... in the order given, all
 //! starting at the same time (a part whose track is shorter is simply not seen afterwards).
@@ -95,26 +95,34 @@ pub fn parse_track(path: &Path) -> Result<Vec<TrackPose>, ImportError> {
 
 /// The synthesised cloud of one observation, fixed frame: a `grid x grid` lattice over the
 /// rectangle (or 5 cm square) in the pose's x-y plane; for a bare point (`x y z`, no orientation
-/// known) a 5 cm cube of `grid^3` points instead, so that the cloud implies no orientation — a
-/// flat patch in a fixed orientation would tell perception that a rotating door does not rotate.
+/// known) `grid^3` points on a sphere of 2.5 cm radius instead (a Fibonacci lattice), so that the
+/// cloud implies no orientation — a flat patch in a fixed orientation would tell perception that
+/// a rotating door does not rotate, and so would a cube's faces (a cube until stop 105).
 pub fn synthesize(pose: &TrackPose, grid: usize) -> Vec<[f64; 3]> {
     let (w, h) = pose.size.unwrap_or((0.05, 0.05));
-    let rot = pose.orientation.unwrap_or_else(UnitQuaternion::identity);
     let g = grid.max(2);
-    let layers: Vec<f64> = if pose.orientation.is_some() {
-        vec![0.0]
-    } else {
-        (0..g).map(|c| (c as f64 / (g - 1) as f64 - 0.5) * 0.05).collect()
+    let Some(rot) = pose.orientation else {
+        // A sphere (Fibonacci lattice), which pins no rotation: a cube's faces would tell
+        // perception's surface-normal test that this point never turns (stop 105).
+        let n = g * g * g;
+        let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
+        return (0..n)
+            .map(|i| {
+                let z = 1.0 - 2.0 * (i as f64 + 0.5) / n as f64;
+                let r = (1.0 - z * z).sqrt();
+                let t = golden * i as f64;
+                let p = pose.position + Vector3::new(r * t.cos(), r * t.sin(), z) * 0.025;
+                [p.x, p.y, p.z]
+            })
+            .collect();
     };
-    let mut pts = Vec::with_capacity(g * g * layers.len());
+    let mut pts = Vec::with_capacity(g * g);
     for a in 0..g {
         for b in 0..g {
-            for &dz in &layers {
-                let u = (a as f64 / (g - 1) as f64 - 0.5) * w;
-                let v = (b as f64 / (g - 1) as f64 - 0.5) * h;
-                let p = pose.position + rot * Vector3::new(u, v, dz);
-                pts.push([p.x, p.y, p.z]);
-            }
+            let u = (a as f64 / (g - 1) as f64 - 0.5) * w;
+            let v = (b as f64 / (g - 1) as f64 - 0.5) * h;
+            let p = pose.position + rot * Vector3::new(u, v, 0.0);
+            pts.push([p.x, p.y, p.z]);
         }
     }
     pts

@@ -144,6 +144,31 @@ pub fn normal_of(pts: &[Vector3<f64>]) -> (Vector3<f64>, f64) {
     if v.iter().all(|x| x.is_finite()) && v.norm() > 0.5 { (v.normalize(), variation) } else { (Vector3::z(), 1.0 / 3.0) }
 }
 
+/// The point-to-plane information about small rotations of the surface sampled by `pts` (m)
+/// about `centre` (m): `Σ j jᵀ / N` with `j = (p - c) x n`, `n` each point's normal from its `k`
+/// nearest points ([`normal_of`]), in m² (3x3, fixed frame). A rotation `w` moves a surface
+/// point off its surface by `w · j`, so an axis with little information is one the surface does
+/// not pin (a sphere's every axis, a disc's or flat plate's spin); unlike second moments it sees
+/// that a cube's faces or a slab's edges pin theirs. Zero for fewer than `k + 1` points.
+pub fn rotation_information(pts: &[Vector3<f64>], centre: &Vector3<f64>, k: usize) -> Matrix3<f64> {
+    use kiddo::{KdTree, SquaredEuclidean};
+    if pts.len() < k + 1 {
+        return Matrix3::zeros();
+    }
+    let mut tree: KdTree<f64, 3> = KdTree::new();
+    for (i, p) in pts.iter().enumerate() {
+        tree.add(&[p.x, p.y, p.z], i as u64);
+    }
+    let mut a = Matrix3::zeros();
+    for p in pts {
+        let nb: Vec<Vector3<f64>> = tree.nearest_n::<SquaredEuclidean>(&[p.x, p.y, p.z], k).iter().map(|n| pts[n.item as usize]).collect();
+        let (n, _) = normal_of(&nb);
+        let j = (p - centre).cross(&n);
+        a += j * j.transpose();
+    }
+    a / pts.len() as f64
+}
+
 /// Contact areas \[m²\] between the parts' surfaces (model points moved by their poses) at the first grid
 /// frame in which both parts of a pair are seen: the number of model points of one part within
 /// `range` of the other's, times the surface each point stands for (`voxel²`), averaged over both

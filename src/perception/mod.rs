@@ -22,7 +22,9 @@
 //! (parry3d mass properties), else its mean — its inertia per kilogram (the hull's, else the
 //! points' second moment, as for a thin shell), and which rotations its shape makes observable: a
 //! rotation about a principal axis is observable only if the spreads along the other two axes
-//! differ by `orientation_min_ratio` (nothing about a cube, not the spin of a square plate).
+//! differ by `orientation_min_ratio` (nothing about a cube, not the spin of a square plate), or
+//! where its surface normals pin it (`orientation_min_information`: a cube's faces, a slab's edges;
+//! never a sphere's spin).
 
 pub mod geometry;
 pub mod registration;
@@ -65,6 +67,13 @@ pub struct PerceptionConfig {
     pub rotation_sd_floor_rad: f64,
     /// Ratio between principal spreads for a rotation to be observable.
     pub orientation_min_ratio: f64,
+    /// A rotation axis is also observable where the model's surface normals pin it: its
+    /// point-to-plane information ([`geometry::rotation_information`]) is at least this share of
+    /// the model's mean squared distance from its centre of mass (1 for a surface whose every
+    /// normal is square to its radius; 0 for a sphere's spin, or a flat plate's about its
+    /// normal). Where this gives more axes than `orientation_min_ratio`, its axes are used. 0: off
+    /// (the spreads alone, as before stop 105). Set once at 0.1, before any run (README, "Stop 105").
+    pub orientation_min_information: f64,
     /// Registration covariance multiplier (errors of neighbouring depth pixels are correlated).
     pub registration_cov_scale: f64,
     /// Model resolution: one model point per voxel of this size \[m\].
@@ -162,6 +171,7 @@ impl Default for PerceptionConfig {
             com_sd_floor_m: 0.003,
             rotation_sd_floor_rad: 0.02,
             orientation_min_ratio: 1.3,
+            orientation_min_information: 0.1,
             registration_cov_scale: 4.0,
             voxel_m: 0.008,
             smoothing_radius_m: 0.0,
@@ -255,6 +265,9 @@ struct PartState {
 /// One registered frame of a part kept for [`Perception::refine`]: stamp \[s\], points \[m\]
 /// (fixed frame), their weights, and the hand on the part in that frame, if any.
 type KeptFrame = (f64, Vec<Vector3<f64>>, Vec<f64>, Option<registration::Hand>);
+
+/// Neighbours of a model point that give its normal in [`geometry::rotation_information`].
+const NORMAL_NEIGHBOURS: usize = 10;
 
 /// A part registered again more than this long after its last pushed frame \[s\] starts a new
 /// touch ([`PerceptionConfig::hand_sd_m`]): the push it was touched in has ended out of view.
@@ -710,7 +723,22 @@ pub fn part_geometry(points: &[Vector3<f64>], cfg: &PerceptionConfig) -> PartGeo
     let r = cfg.orientation_min_ratio;
     // Rotation about principal axis k is observable if the spreads along the other two differ.
     let observable = [v[1] > r * v[2], v[0] > r * v[2], v[0] > r * v[1]];
-    let rotation_axes = (0..3).filter(|&k| observable[k] && v[2] >= 0.0).map(|k| pr.axes.column(k).into_owned()).collect();
+    let mut rotation_axes: Vec<Vector3<f64>> = (0..3).filter(|&k| observable[k] && v[2] >= 0.0).map(|k| pr.axes.column(k).into_owned()).collect();
+    // The surfaces' own say: the eigen-axes of the point-to-plane information about rotations
+    // that hold at least `orientation_min_information` of the mean squared radius. Where they
+    // are more axes than the spreads give, they replace them (stop 105: a near-square slab's spin,
+    // pinned by its top and side faces, while a sphere pins nothing).
+    if cfg.orientation_min_information > 0.0 && v[2] >= 0.0 {
+        let mean_r2 = points.iter().map(|p| (p - com).norm_squared()).sum::<f64>() / points.len().max(1) as f64;
+        let e = geometry::rotation_information(points, &com, NORMAL_NEIGHBOURS).symmetric_eigen();
+        if mean_r2 > 0.0 {
+            let axes: Vec<Vector3<f64>> =
+                (0..3).filter(|&k| e.eigenvalues[k] >= cfg.orientation_min_information * mean_r2).map(|k| e.eigenvectors.column(k).into_owned()).collect();
+            if axes.len() > rotation_axes.len() {
+                rotation_axes = axes;
+            }
+        }
+    }
     let radius = (points.iter().map(|p| (p - com).norm_squared()).sum::<f64>() / points.len().max(1) as f64).sqrt();
     PartGeometry { com, unit_inertia, volume, rotation_axes, radius, points: points.to_vec() }
 }
@@ -1036,7 +1064,47 @@ mod tests {
         assert!(sq.rotation_axes.iter().all(|a| a.z.abs() < 1e-9), "{:?}", sq.rotation_axes);
         let bx = part_geometry(&lattice(0.04, 0.02, 0.01), &cfg);
         assert_eq!(bx.rotation_axes.len(), 3);
+        // The spreads alone: the cube and the square plate as above, for any other reason.
+        let spreads = PerceptionConfig { orientation_min_information: 0.0, ..cfg.clone() };
+        assert_eq!(part_geometry(&lattice(0.01, 0.01, 0.01), &spreads).rotation_axes.len(), 0);
+        assert_eq!(part_geometry(&lattice(0.01, 0.01, 0.0), &spreads).rotation_axes.len(), 2);
         assert!(bx.volume > 0.0 && (bx.com - Vector3::new(0.08, 0.04, 0.02)).norm() < 1e-6);
+    }
+
+    /// Surfaces, not spreads (stop 105): the surface of a near-square slab (0.29 x 0.27 x 0.05 m,
+    /// `obj082`'s slider) pins its spin with its edges though its face's spreads are within 1.3,
+    /// and the surface of a sphere pins no rotation (the stand-in of `bom import-tracks`).
+    #[test]
+    fn surfaces_pin_a_slabs_spin_and_not_a_spheres() {
+        let cfg = PerceptionConfig::default();
+        let spreads = PerceptionConfig { orientation_min_information: 0.0, ..cfg.clone() };
+        // Points on the six faces of a box, 1 cm apart.
+        let (a, b, c) = (0.29, 0.27, 0.05);
+        let mut slab = Vec::new();
+        let steps = |l: f64| (0..=(l / 0.01).round() as usize).map(move |i| i as f64 * 0.01 - l / 2.0);
+        for x in steps(a) {
+            for y in steps(b) {
+                slab.push(Vector3::new(x, y, -c / 2.0));
+                slab.push(Vector3::new(x, y, c / 2.0));
+            }
+            for z in steps(c) {
+                slab.push(Vector3::new(x, -b / 2.0, z));
+                slab.push(Vector3::new(x, b / 2.0, z));
+            }
+        }
+        for y in steps(b) {
+            for z in steps(c) {
+                slab.push(Vector3::new(-a / 2.0, y, z));
+                slab.push(Vector3::new(a / 2.0, y, z));
+            }
+        }
+        assert_eq!(part_geometry(&slab, &spreads).rotation_axes.len(), 2, "the spreads miss the spin");
+        assert_eq!(part_geometry(&slab, &cfg).rotation_axes.len(), 3, "the slab's edges pin its spin");
+        let pose = crate::import::TrackPose { position: Vector3::new(0.4, -0.2, 0.1), orientation: None, size: None };
+        let sphere: Vec<Vector3<f64>> = crate::import::synthesize(&pose, 6).iter().map(|p| Vector3::new(p[0], p[1], p[2])).collect();
+        assert_eq!(sphere.len(), 216);
+        assert!(sphere.iter().all(|p| ((p - pose.position).norm() - 0.025).abs() < 1e-12));
+        assert_eq!(part_geometry(&sphere, &cfg).rotation_axes.len(), 0, "a sphere pins no rotation");
     }
 
     /// A hatch 1.5 cm in front of a door panel, seen from in front: the hatch's points along
