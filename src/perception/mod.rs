@@ -1046,7 +1046,8 @@ mod tests {
     #[test]
     fn observability_follows_the_shape() {
         let cfg = PerceptionConfig::default();
-        // A cube of points: no rotation observable; a flat square: all but its spin; a box: all.
+        // A solid lattice cube (no surface whose normals could pin a turn): no rotation observable;
+        // a flat square: all but its spin; a box: all.
         let lattice = |sx: f64, sy: f64, sz: f64| -> Vec<Vector3<f64>> {
             let mut v = Vec::new();
             for a in 0..5 {
@@ -1064,7 +1065,7 @@ mod tests {
         assert!(sq.rotation_axes.iter().all(|a| a.z.abs() < 1e-9), "{:?}", sq.rotation_axes);
         let bx = part_geometry(&lattice(0.04, 0.02, 0.01), &cfg);
         assert_eq!(bx.rotation_axes.len(), 3);
-        // The spreads alone: the cube and the square plate as above, for any other reason.
+        // The spreads alone (the surfaces' test off) say the same of the cube and the square.
         let spreads = PerceptionConfig { orientation_min_information: 0.0, ..cfg.clone() };
         assert_eq!(part_geometry(&lattice(0.01, 0.01, 0.01), &spreads).rotation_axes.len(), 0);
         assert_eq!(part_geometry(&lattice(0.01, 0.01, 0.0), &spreads).rotation_axes.len(), 2);
