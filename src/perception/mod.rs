@@ -724,12 +724,12 @@ pub fn part_geometry(points: &[Vector3<f64>], cfg: &PerceptionConfig) -> PartGeo
     // Rotation about principal axis k is observable if the spreads along the other two differ.
     let observable = [v[1] > r * v[2], v[0] > r * v[2], v[0] > r * v[1]];
     let mut rotation_axes: Vec<Vector3<f64>> = (0..3).filter(|&k| observable[k] && v[2] >= 0.0).map(|k| pr.axes.column(k).into_owned()).collect();
+    let mean_r2 = points.iter().map(|p| (p - com).norm_squared()).sum::<f64>() / points.len().max(1) as f64;
     // The surfaces' own say: the eigen-axes of the point-to-plane information about rotations
     // that hold at least `orientation_min_information` of the mean squared radius. Where they
     // are more axes than the spreads give, they replace them (stop 105: a near-square slab's spin,
     // pinned by its top and side faces, while a sphere pins nothing).
     if cfg.orientation_min_information > 0.0 && v[2] >= 0.0 {
-        let mean_r2 = points.iter().map(|p| (p - com).norm_squared()).sum::<f64>() / points.len().max(1) as f64;
         let e = geometry::rotation_information(points, &com, NORMAL_NEIGHBOURS).symmetric_eigen();
         if mean_r2 > 0.0 {
             let axes: Vec<Vector3<f64>> =
@@ -739,7 +739,7 @@ pub fn part_geometry(points: &[Vector3<f64>], cfg: &PerceptionConfig) -> PartGeo
             }
         }
     }
-    let radius = (points.iter().map(|p| (p - com).norm_squared()).sum::<f64>() / points.len().max(1) as f64).sqrt();
+    let radius = mean_r2.sqrt();
     PartGeometry { com, unit_inertia, volume, rotation_axes, radius, points: points.to_vec() }
 }
 
