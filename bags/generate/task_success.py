@@ -416,9 +416,9 @@ class Feedback:
         so that a short, nearly straight arc leaves the model's hinge where it was and a longer
         one corrects it: an arc pins the hinge across the handle's radius well and along it
         poorly (the radius is in the arc's curvature, a few millimetres of sagitta), so along
-        the radius the prior keeps much of its weight. The oracle's hinge (no spread) is kept. Then the planner's draws' hinge
-        points shift with it, and the coordinates of the earlier pushes' starts and ends, and
-        what they moved, are read again about it. Why: the coordinate read about a hinge a few
+        the radius the prior keeps much of its weight. The oracle's hinge (no spread) is kept.
+        Then the planner's draws' hinge points shift with it, and the coordinates of the earlier
+        pushes' starts and ends, and what they moved, are read again about it. Why: the coordinate read about a hinge a few
         centimetres off is off by about as many percent of the turn (`validation`'s `obj034`,
         hinge 4.9 cm off: 0.73 rad read as 0.81, the door left 6 degrees short; `tune`'s
         `obj030`, 0.63 as 0.71)."""

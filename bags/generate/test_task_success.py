@@ -16,8 +16,8 @@ update of its draws, the default; 1.7 after three with Bayes' rule, `--update ba
 four with neither, `--update none`; stop 103, every push but the last half of what is still
 wanted; 1.8 after three with the default since stop 106 refits the hinge to the handle's arc).
 The hinge refit (`Feedback._refit_hinge`) must correct a hinge 4 cm off across the handle's
-radius from a 0.4 rad arc, and not move one off along it away. Bayes' rule on the planner's draws after a push (`Feedback._reweigh`) must pick,
-of three, the draw that explains it; the ensemble update (`Feedback._assimilate`) must move draws
+radius from a 0.4 rad arc, and not move one off along it away. Bayes' rule on the planner's
+draws after a push (`Feedback._reweigh`) must pick, of three, the draw that explains it; the ensemble update (`Feedback._assimilate`) must move draws
 that all fall short of a push to explain it better than any of them did.
 """
 import json
