@@ -418,10 +418,10 @@ class Feedback:
         poorly (the radius is in the arc's curvature, a few millimetres of sagitta), so along
         the radius the prior keeps much of its weight. The oracle's hinge (no spread) is kept.
         Then the planner's draws' hinge points shift with it, and the coordinates of the earlier
-        pushes' starts and ends, and what they moved, are read again about it. Why: the coordinate read about a hinge a few
-        centimetres off is off by about as many percent of the turn (`validation`'s `obj034`,
-        hinge 4.9 cm off: 0.73 rad read as 0.81, the door left 6 degrees short; `tune`'s
-        `obj030`, 0.63 as 0.71)."""
+        pushes' starts and ends, and what they moved, are read again about it. Why: the
+        coordinate read about a hinge a few centimetres off is off by about as many percent of
+        the turn (`validation`'s `obj034`, hinge 4.9 cm off: 0.73 rad read as 0.81, the door left
+        6 degrees short; `tune`'s `obj030`, 0.63 as 0.71)."""
         if self.kind != "revolute" or self.point_sd <= 0.0 or len(self.obs) < 3:
             return
         a = self.axis

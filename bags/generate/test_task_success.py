@@ -17,8 +17,9 @@ four with neither, `--update none`; stop 103, every push but the last half of wh
 wanted; 1.8 after three with the default since stop 106 refits the hinge to the handle's arc).
 The hinge refit (`Feedback._refit_hinge`) must correct a hinge 4 cm off across the handle's
 radius from a 0.4 rad arc, and not move one off along it away. Bayes' rule on the planner's
-draws after a push (`Feedback._reweigh`) must pick, of three, the draw that explains it; the ensemble update (`Feedback._assimilate`) must move draws
-that all fall short of a push to explain it better than any of them did.
+draws after a push (`Feedback._reweigh`) must pick, of three, the draw that explains it; the
+ensemble update (`Feedback._assimilate`) must move draws that all fall short of a push to
+explain it better than any of them did.
 """
 import json
 import math
@@ -81,8 +82,12 @@ def main():
     true = ts.true_as_arrays(scene.true_model(task))
     ctl = ts.Feedback(true, task, SEED)
     h0 = np.array(task["handle"])
-    turned = true["point"][0] + ts.rotate(h0 - true["point"][0], true["direction"][0], np.array(0.3 * ctl.sign))
-    read = ctl.coordinate(turned)
+
+    def about_true_axis(angle):
+        """The handle turned by `angle` towards the target about the true axis."""
+        return true["point"][0] + ts.rotate(h0 - true["point"][0], true["direction"][0], np.array(angle * ctl.sign))
+
+    read = ctl.coordinate(about_true_axis(0.3))
     print(f"coordinate of the handle turned by 0.3 rad towards the target: {read:.4f}")
     # The hinge refit (`Feedback._refit_hinge`): a model whose hinge is 4 cm off the truth (sd 3
     # cm, as bom's posteriors give) reads the handle's turn about the wrong point. After 90 noisy
@@ -90,8 +95,6 @@ def main():
     # handle's radius is refitted to within 1 cm, and the turn read to 0.01 rad; one off along
     # the radius is not pinned by so short an arc (it moves the arc's curvature, a few mm of
     # sagitta) and must at least not move away.
-    def about_true_axis(angle):
-        return true["point"][0] + ts.rotate(h0 - true["point"][0], true["direction"][0], np.array(angle * ctl.sign))
     axis = true["direction"][0] / np.linalg.norm(true["direction"][0])
     radial = h0 - true["point"][0]
     radial -= axis * (radial @ axis)
