@@ -110,6 +110,14 @@ fn non_centred_density_gradient_matches_finite_differences() {
     let dims = checked_dims(density, &ev, true);
     let bad = mismatches(|v, gr| nc.log_density(v, gr), &y, &g, &dims);
     assert!(bad.is_empty(), "gradient vs central differences (index, gradient, fd): {bad:?}");
+    // The density takes the map's simulation instead of simulating again: moving a non-centred
+    // coordinate (the map's Jacobian unchanged) changes the value as the model's density at the
+    // mapped coordinates, which simulates afresh, changes.
+    let k = (0..y.len()).find(|&k| (x[k] - y[k]).abs() > 1e-6).expect("a non-centred coordinate");
+    let mut y2 = y.clone();
+    y2[k] += 0.5;
+    let (ly2, lx, lx2) = (nc.log_density(&y2, &mut g), density.log_density(&x, &mut g), density.log_density(&nc.to_model(&y2), &mut g));
+    assert!(((ly2 - l) - (lx2 - lx)).abs() < 1e-9 * lx.abs().max(1.0), "non-centred {} against the model's {}", ly2 - l, lx2 - lx);
     // Partially non-centred (`nuts.partial_centring`): centrings 0 to 0.9 across the frames,
     // the coordinates' gradients and the Jacobian's included.
     let pc = NonCentred::partial(Density::new(&ev, &cfg.model, map_structure(&fitted)), |_, t| Some((t % 4) as f64 * 0.3));

@@ -35,6 +35,7 @@
 //! ([`crate::inference::svi`]).
 
 use std::cell::RefCell;
+use std::collections::VecDeque;
 
 use nalgebra::{Matrix3, Vector3};
 use num_dual::DualSVec64;
@@ -283,9 +284,10 @@ pub fn physics_prior_value(
 /// gradient, the gradient with respect to part `i`'s own standardised kinematic parameters `xk`
 /// at the positions [`kinematic_dims`] lists — from the same dual numbers as the kinodynamic one,
 /// one simulation a window (the axis and centre of mass enter the physics through the
-/// generalised inertia, the projected push, the radius and gravity's lever).
+/// generalised inertia, the projected push, the radius and gravity's lever); with `replay`, the
+/// windows' `Psi` taken from it rather than simulated ([`NonCentred`]).
 #[allow(clippy::too_many_arguments)]
-pub fn physics_prior_kinematic(
+pub(crate) fn physics_prior_kinematic(
     ev: &Evidence,
     i: usize,
     s: &PartValue<'_>,
@@ -295,9 +297,9 @@ pub fn physics_prior_kinematic(
     chosen: &[PartValue<'_>],
     transforms: &[Vec<Displacement<f64>>],
     model: &ModelConfig,
-    trajectories: Option<&RefCell<Vec<dynamics::Trajectory>>>,
+    replay: Option<&Replay>,
 ) -> (f64, Vec<f64>, Vec<f64>) {
-    let (l, gx, gq, _) = physics_prior_terms(ev, i, s, None, pre, desc, chosen, transforms, model, true, None, None, Terms::Kinematic(xk, trajectories));
+    let (l, gx, gq, _) = physics_prior_terms(ev, i, s, None, pre, desc, chosen, transforms, model, true, None, None, Terms::Kinematic(xk, replay));
     (l, gx, gq)
 }
 
@@ -313,6 +315,52 @@ pub fn kinematic_dims(joint: JointType) -> &'static [usize] {
     }
 }
 
+/// Part of [`NonCentred`]'s map handed to the density: each window's `Psi` at its frames, with
+/// its derivatives, in window order; the physics prior takes them in place of simulating again.
+pub(crate) type Replay = RefCell<VecDeque<FramePsi>>;
+
+/// `Psi` of one joint in one window at the window's frames (`psi[0]` the window's first
+/// coordinate), as the physics prior's dual simulation gives it: the value and its derivatives
+/// over the dual directions of [`window_prior_kinematic`] — the kinodynamic parameters
+/// (`0..nk`), the window's first coordinate (`nk`) and the joint's own [`kinematic_dims`]
+/// (after it). Kept by [`NonCentred`], which needs `Psi` before the density can be evaluated
+/// (its map) and the same derivatives after (its chain rule): one dual simulation a window serves both.
+#[derive(Debug, Clone)]
+pub(crate) struct FramePsi {
+    /// Dual directions a frame (the `N` of the dual numbers it came from).
+    n: usize,
+    /// `Psi_k` \[m of path\].
+    re: Vec<f64>,
+    /// `d Psi_k / d direction_j` at `eps[k * n + j]`.
+    eps: Vec<f64>,
+}
+
+impl FramePsi {
+    fn from_dual<const N: usize>(psi: &[DualSVec64<N>]) -> Self {
+        let mut eps = Vec::with_capacity(psi.len() * N);
+        for p in psi {
+            eps.extend(p.eps.unwrap_generic(nalgebra::Const::<N>, nalgebra::U1).iter());
+        }
+        FramePsi { n: N, re: psi.iter().map(|p| p.re).collect(), eps }
+    }
+
+    /// The dual numbers again, `None` when they had another width.
+    fn to_dual<const N: usize>(&self) -> Option<Vec<DualSVec64<N>>> {
+        (self.n == N).then(|| {
+            self.re
+                .iter()
+                .zip(self.eps.chunks_exact(N))
+                .map(|(&re, e)| DualSVec64::<N>::new(re, num_dual::Derivative::some(nalgebra::SVector::<f64, N>::from_column_slice(e))))
+                .collect()
+        })
+    }
+
+    /// `d Psi_k / d direction_j`.
+    fn d(&self, k: usize, j: usize) -> f64 {
+        self.eps[k * self.n + j]
+    }
+}
+
 /// What [`physics_prior_terms`] differentiates.
 #[derive(Clone, Copy)]
 enum Terms<'a> {
@@ -321,9 +369,9 @@ enum Terms<'a> {
     /// The kinodynamic parameters and the coordinates.
     Kinodynamic,
     /// Those and the part's own kinematic parameters (its standardised block, given); with a
-    /// sink, each window's simulated trajectory and its derivatives are pushed to it, in window
-    /// order ([`NonCentred`]'s chain rule).
-    Kinematic(&'a [f64], Option<&'a RefCell<Vec<dynamics::Trajectory>>>),
+    /// replay, each window's `Psi` is taken from it (in window order) instead of simulated again
+    /// ([`NonCentred`], which simulated it for its map).
+    Kinematic(&'a [f64], Option<&'a Replay>),
 }
 
 /// [`physics_prior_collapsed`], differentiated as `terms` says: with [`Terms::Value`] the window
@@ -403,8 +451,8 @@ fn physics_prior_terms(
                 (l, gx, gq, kept)
             }
             Terms::Kinodynamic => dynamics::window_prior_split(&jw, win, s.q, observed, xi, dyncfg, skip),
-            Terms::Kinematic(xk, sink) => {
-                let physics = window_prior_kinematic(ev, i, s, xk, win, pre, desc, chosen, transforms, model, &jw, observed, skip, sink);
+            Terms::Kinematic(xk, replay) => {
+                let physics = window_prior_kinematic(ev, i, s, xk, win, pre, desc, chosen, transforms, model, &jw, observed, skip, replay);
                 if robust {
                     let (l, gx, gq, _, kept) = dynamics::robust_mix(win, s.q, observed, dyncfg, model.velocity_sd_mps, skip, physics);
                     (l, gx, gq, kept)
@@ -450,15 +498,55 @@ fn window_prior_kinematic(
     jw: &dynamics::JointInWindow<'_>,
     observed: Option<&dynamics::Observed>,
     skip: Option<&[bool]>,
-    sink: Option<&RefCell<Vec<dynamics::Trajectory>>>,
+    replay: Option<&Replay>,
 ) -> (f64, Vec<f64>, Vec<f64>, f64) {
-    let n = s.kd.map_or(0, |x| x.len()) + 1 + kinematic_dims(s.params.joint).len();
-    let args = (ev, i, s, xk, win, pre, desc, chosen, transforms, model, jw, observed, skip, sink);
-    match n {
-        0..=8 => window_prior_kinematic_n::<8>(args),
-        9..=14 => window_prior_kinematic_n::<14>(args),
-        15..=21 => window_prior_kinematic_n::<21>(args),
+    let args = (ev, i, s, xk, win, pre, desc, chosen, transforms, model, jw, observed, skip, replay);
+    match dual_width(s) {
+        8 => window_prior_kinematic_n::<8>(args),
+        14 => window_prior_kinematic_n::<14>(args),
+        _ => window_prior_kinematic_n::<21>(args),
+    }
+}
+
+/// The width `N` of [`window_prior_kinematic`]'s dual numbers for part value `s`: its
+/// kinodynamic parameters, the window's first coordinate and its [`kinematic_dims`], rounded up
+/// to 8, 14 or 21.
+fn dual_width(s: &PartValue<'_>) -> usize {
+    match s.kd.map_or(0, |x| x.len()) + 1 + kinematic_dims(s.params.joint).len() {
+        0..=8 => 8,
+        9..=14 => 14,
+        15..=21 => 21,
         n => panic!("{n} dual directions: at most 21 (10 kinodynamic, 1 coordinate, 9 kinematic)"),
+    }
+}
+
+/// `Psi` of part `i` in window `win` at the window's frames, simulated in the dual numbers of
+/// [`window_prior_kinematic`] (the same arguments; [`NonCentred`]'s map).
+#[allow(clippy::too_many_arguments)]
+fn window_psi_kinematic(
+    ev: &Evidence,
+    i: usize,
+    s: &PartValue<'_>,
+    xk: &[f64],
+    win: &WindowEvidence,
+    pre: &[Displacement<f64>],
+    desc: &[usize],
+    chosen: &[PartValue<'_>],
+    transforms: &[Vec<Displacement<f64>>],
+    model: &ModelConfig,
+    jw: &dynamics::JointInWindow<'_>,
+) -> FramePsi {
+    fn psi<const N: usize>(args: KinematicArgs<'_, '_>) -> FramePsi {
+        let (ev, i, s, _, _, _, _, _, _, model, ..) = args;
+        let xd = kinodynamic_duals::<N>(s);
+        let kp = dynamics::decode(s.params.joint, &xd, &ev.effects[i], &model.dynamics);
+        FramePsi::from_dual(&simulate_kinematic_n::<N>(args, &kp))
+    }
+    let args = (ev, i, s, xk, win, pre, desc, chosen, transforms, model, jw, None, None, None);
+    match dual_width(s) {
+        8 => psi::<8>(args),
+        14 => psi::<14>(args),
+        _ => psi::<21>(args),
     }
 }
 
@@ -476,17 +564,42 @@ type KinematicArgs<'a, 'b> = (
     &'a dynamics::JointInWindow<'a>,
     Option<&'a dynamics::Observed>,
     Option<&'a [bool]>,
-    Option<&'a RefCell<Vec<dynamics::Trajectory>>>,
+    Option<&'a Replay>,
 );
 
-fn window_prior_kinematic_n<const N: usize>(args: KinematicArgs<'_, '_>) -> (f64, Vec<f64>, Vec<f64>, f64) {
-    type Dn<const N: usize> = DualSVec64<N>;
-    let (ev, i, s, xk, win, pre, desc, chosen, transforms, model, jw, observed, skip, sink) = args;
+/// A movable part's kinodynamic parameters as dual numbers, seeded on directions `0..nk`.
+fn kinodynamic_duals<const N: usize>(s: &PartValue<'_>) -> Vec<DualSVec64<N>> {
     let xi = s.kd.expect("a movable joint's kinodynamics");
-    let dims = kinematic_dims(s.params.joint);
-    let (nk, q0_slot) = (xi.len(), xi.len());
-    let xd: Vec<Dn<N>> = xi.iter().enumerate().map(|(j, &x)| Dn::<N>::from_re(x).derivative(j)).collect();
+    xi.iter().enumerate().map(|(j, &x)| DualSVec64::<N>::from_re(x).derivative(j)).collect()
+}
+
+fn window_prior_kinematic_n<const N: usize>(args: KinematicArgs<'_, '_>) -> (f64, Vec<f64>, Vec<f64>, f64) {
+    let (ev, i, s, _, win, _, _, _, _, model, _, observed, skip, replay) = args;
+    let (nk, n_kin) = (s.kd.map_or(0, |x| x.len()), kinematic_dims(s.params.joint).len());
+    // The window's first coordinate's direction follows the kinodynamic ones.
+    let q0_slot = nk;
+    let xd = kinodynamic_duals::<N>(s);
     let kp = dynamics::decode(s.params.joint, &xd, &ev.effects[i], &model.dynamics);
+    // A replay of another width or length (a bug) is not used: the window is simulated instead.
+    let replayed = replay.and_then(|r| r.borrow_mut().pop_front()).and_then(|f| f.to_dual::<N>()).filter(|p| p.len() == win.frames.len());
+    let psi = replayed.unwrap_or_else(|| simulate_kinematic_n::<N>(args, &kp));
+    let (ll, mut gq, skipped) = dynamics::window_terms_at(&psi, win, s.q, observed, &kp, &model.dynamics, skip);
+    let eps = ll.eps.unwrap_generic(nalgebra::Const::<N>, nalgebra::U1);
+    let mut gx: Vec<f64> = (0..nk).map(|j| eps[j]).collect();
+    gx.extend((0..n_kin).map(|k| eps[nk + 1 + k]));
+    gq[0] += eps[q0_slot];
+    (ll.re, gx, gq, ll.re - skipped)
+}
+
+/// The simulation of [`window_prior_kinematic_n`] at decoded kinodynamics `kp`: `Psi` at the
+/// window's frames, dual numbers seeded on the kinodynamics (`kp`'s), the window's first
+/// coordinate and the part's own kinematic parameters.
+fn simulate_kinematic_n<const N: usize>(args: KinematicArgs<'_, '_>, kp: &dynamics::KinoParams<DualSVec64<N>>) -> Vec<DualSVec64<N>> {
+    type Dn<const N: usize> = DualSVec64<N>;
+    let (ev, i, s, xk, win, pre, desc, chosen, transforms, model, jw, ..) = args;
+    let dims = kinematic_dims(s.params.joint);
+    let nk = s.kd.map_or(0, |x| x.len());
+    let q0_slot = nk;
     let f0 = win.frames[0];
     let q0 = Dn::<N>::from_re(s.q[f0]).derivative(q0_slot);
     let mut xkd: Vec<Dn<N>> = xk.iter().map(|&x| Dn::<N>::from_re(x)).collect();
@@ -520,24 +633,8 @@ fn window_prior_kinematic_n<const N: usize>(args: KinematicArgs<'_, '_>) -> (f64
         unit_inertia: carried(&ev.parts[i].unit_inertia),
         subtree,
     };
-    let traj = dynamics::simulate_joint_in(jw, &geom, win, q0, Dn::<N>::from(0.0), &kp, &model.dynamics);
-    if let Some(sink) = sink {
-        let k_len = win.frames.len();
-        let mut out = dynamics::Trajectory { d_xi: Vec::with_capacity(k_len), d_q0: Vec::with_capacity(k_len), d_kinematic: Vec::with_capacity(k_len) };
-        for k in 0..k_len {
-            let eps = dynamics::psi_at(traj.as_ref(), win, k, q0).eps.unwrap_generic(nalgebra::Const::<N>, nalgebra::U1);
-            out.d_xi.push((0..nk).map(|j| eps[j]).collect());
-            out.d_q0.push(eps[q0_slot]);
-            out.d_kinematic.push((0..dims.len()).map(|m| eps[nk + 1 + m]).collect());
-        }
-        sink.borrow_mut().push(out);
-    }
-    let (ll, mut gq, skipped) = dynamics::window_terms(traj, win, s.q, observed, &kp, q0, &model.dynamics, skip);
-    let eps = ll.eps.unwrap_generic(nalgebra::Const::<N>, nalgebra::U1);
-    let mut gx: Vec<f64> = (0..nk).map(|j| eps[j]).collect();
-    gx.extend((0..dims.len()).map(|k| eps[nk + 1 + k]));
-    gq[0] += eps[q0_slot];
-    (ll.re, gx, gq, ll.re - skipped)
+    let traj = dynamics::simulate_joint_in(jw, &geom, win, q0, Dn::<N>::from(0.0), kp, &model.dynamics);
+    (0..win.frames.len()).map(|k| dynamics::psi_at(traj.as_ref(), win, k, q0)).collect()
 }
 
 /// Part `i`'s joint in one window as the physics sees it (fixed frame, at the window's start
@@ -784,10 +881,10 @@ impl<'a> Density<'a> {
         self.log_density_with(x, grad, None)
     }
 
-    /// [`Self::log_density`], pushing each movable part's simulated window trajectories, with
-    /// their derivatives (kinodynamics, the window's first coordinate, [`kinematic_dims`]), to
-    /// `trajectories[i]` in window order when given (dynamic mode; [`NonCentred`]).
-    fn log_density_with(&self, x: &[f64], grad: &mut [f64], trajectories: Option<&[RefCell<Vec<dynamics::Trajectory>>]>) -> f64 {
+    /// [`Self::log_density`], taking each movable part's window trajectories `Psi` from
+    /// `replays[i]` (in window order) where given instead of simulating them (dynamic mode;
+    /// [`NonCentred`], whose map has simulated them at the same windows' first coordinates).
+    fn log_density_with(&self, x: &[f64], grad: &mut [f64], replays: Option<&[Replay]>) -> f64 {
         grad.iter_mut().for_each(|g| *g = 0.0);
         let (ev, model) = (self.ev, self.model);
         let (n, frames) = (ev.parts.len(), ev.len());
@@ -867,7 +964,7 @@ impl<'a> Density<'a> {
             }
         }
         if !ev.windows.is_empty() {
-            let (l, g) = self.physics(x, &values, &transforms, trajectories);
+            let (l, g) = self.physics(x, &values, &transforms, replays);
             lp += l;
             for (a, b) in grad.iter_mut().zip(&g) {
                 *a += b;
@@ -882,7 +979,7 @@ impl<'a> Density<'a> {
     /// part's physics (a parent's axis moving its child's, a child's mass and centre of mass
     /// loading its parent's) by forward differences of the other part's value
     /// ([`cross_physics_differences`]).
-    fn physics(&self, x: &[f64], values: &[PartValue<'_>], transforms: &[Vec<Displacement<f64>>], trajectories: Option<&[RefCell<Vec<dynamics::Trajectory>>]>) -> (f64, Vec<f64>) {
+    fn physics(&self, x: &[f64], values: &[PartValue<'_>], transforms: &[Vec<Displacement<f64>>], replays: Option<&[Replay]>) -> (f64, Vec<f64>) {
         let n = values.len();
         let frames = self.ev.len();
         let parent = &self.structure.parent;
@@ -891,7 +988,7 @@ impl<'a> Density<'a> {
             .map(|i| {
                 let s = self.slots[i];
                 let xk = &x[s.xi..s.xi + s.np];
-                let (l, gx, gq) = self.part_physics_kinematic(i, xk, values, transforms, trajectories.map(|t| &t[i]));
+                let (l, gx, gq) = self.part_physics_kinematic(i, xk, values, transforms, replays.map(|r| &r[i]));
                 if let (Some((k, nk)), Some(o)) = (s.kd, s.q) {
                     for (j, g) in gx.iter().take(nk).enumerate() {
                         grad[k + j] += g;
@@ -948,7 +1045,7 @@ impl<'a> Density<'a> {
         xk: &[f64],
         values: &[PartValue<'_>],
         transforms: &[Vec<Displacement<f64>>],
-        trajectories: Option<&RefCell<Vec<dynamics::Trajectory>>>,
+        replay: Option<&Replay>,
     ) -> (f64, Vec<f64>, Vec<f64>) {
         if values[i].kd.is_none() {
             return (0.0, vec![], vec![]);
@@ -956,7 +1053,7 @@ impl<'a> Density<'a> {
         let parent = &self.structure.parent;
         let pre = pre_transforms(parent, i, transforms, self.ev.len());
         let desc = tree::descendants(parent, i);
-        physics_prior_kinematic(self.ev, i, &values[i], xk, &pre, &desc, values, transforms, self.model, trajectories)
+        physics_prior_kinematic(self.ev, i, &values[i], xk, &pre, &desc, values, transforms, self.model, replay)
     }
 
     /// `part_physics(..).0`, simulated in `f64` ([`physics_prior_value`]).
@@ -1051,9 +1148,13 @@ pub fn window_starts(ev: &Evidence) -> Vec<usize> {
 /// so `log p_y(y) = log p(x(y)) + n log sigma_d` (`n` non-centred coordinates of the part;
 /// partially non-centred, [`NonCentred::partial`], `sigma_d^(1 - lambda_t)` on the diagonal).
 /// Gradient: the chain rule through `Psi` with the derivatives of the physics prior's own dual
-/// simulation at `x` (a part's kinodynamics, `q_{w,0}` and its own kinematic parameters,
-/// [`kinematic_dims`]; one simulation a window) and forward differences for what another part's
-/// parameters do to it (`cross_physics_differences`).
+/// simulation (a part's kinodynamics, `q_{w,0}` and its own kinematic parameters,
+/// [`kinematic_dims`]) and forward differences for what another part's parameters do to it
+/// (`cross_physics_differences`). One dual simulation a window: the map runs it at `y` for `Psi`
+/// and hands it to the density, whose physics prior would otherwise run it again at `x` — the
+/// same trajectories, since they start from the windows' first coordinates, which `x` and `y`
+/// share (until stop 108 the map simulated in `f64` and the density again in dual numbers: a
+/// gradient cost 1.2-1.5 times the centred one's on the shipped 2-part bags).
 pub struct NonCentred<'a> {
     density: Density<'a>,
     /// Per part: `(window, frame index in the window, grid frame, lambda)` of each (partially)
@@ -1071,6 +1172,9 @@ fn model_coordinate(psi: f64, dev: f64, lambda: f64, y: f64) -> f64 {
 struct Simulated {
     /// `Psi` per window, at the window's frames.
     trajectories: Vec<Vec<f64>>,
+    /// The same with their derivatives, per window, when simulated in dual numbers (empty when
+    /// in `f64`).
+    duals: Vec<FramePsi>,
     deviation: f64,
 }
 
@@ -1134,9 +1238,11 @@ impl<'a> NonCentred<'a> {
         self.frames.iter().any(|f| !f.is_empty())
     }
 
-    /// Part values and transforms at `y` (non-centred entries are read as coordinates; only the
-    /// windows' first frames, which are centred, enter the simulation).
-    fn simulate(&self, y: &[f64], params: &[JointParams<f64>], parts: &[usize]) -> Vec<Option<Simulated>> {
+    /// `Psi` of `parts` at `y` (non-centred entries are read as coordinates; only the windows'
+    /// first frames, which are centred, enter the simulation), in the physics prior's dual numbers
+    /// when `dual` ([`window_psi_kinematic`]: the density takes these, so it need not simulate
+    /// again), else in `f64` ([`dynamics::window_psi`], for forward differences).
+    fn simulate(&self, y: &[f64], params: &[JointParams<f64>], parts: &[usize], dual: bool) -> Vec<Option<Simulated>> {
         let d = &self.density;
         let (ev, model) = (d.ev, d.model);
         let frames = ev.len();
@@ -1158,16 +1264,22 @@ impl<'a> NonCentred<'a> {
                 let xi = values[i].kd?;
                 let pre = pre_transforms(parent, i, &transforms, frames);
                 let desc = tree::descendants(parent, i);
-                let trajectories = ev
-                    .windows
-                    .iter()
-                    .map(|win| {
-                        let wj = window_joint(ev, i, &values[i], win, &pre, &desc, &values, &transforms, model);
-                        dynamics::window_psi(&wj.view(ev.effects[i]), win, values[i].q[win.frames[0]], xi, &model.dynamics)
-                    })
-                    .collect();
-                let deviation = dynamics::decode::<f64>(d.slots[i].joint, xi, &ev.effects[i], &model.dynamics).deviation;
-                Some(Simulated { trajectories, deviation })
+                let s = &d.slots[i];
+                let xk = &y[s.xi..s.xi + s.np];
+                let (mut trajectories, mut duals) = (Vec::new(), Vec::new());
+                for win in &ev.windows {
+                    let wj = window_joint(ev, i, &values[i], win, &pre, &desc, &values, &transforms, model);
+                    let jw = wj.view(ev.effects[i]);
+                    if dual {
+                        let psi = window_psi_kinematic(ev, i, &values[i], xk, win, &pre, &desc, &values, &transforms, model, &jw);
+                        trajectories.push(psi.re.clone());
+                        duals.push(psi);
+                    } else {
+                        trajectories.push(dynamics::window_psi(&jw, win, values[i].q[win.frames[0]], xi, &model.dynamics));
+                    }
+                }
+                let deviation = dynamics::decode::<f64>(s.joint, xi, &ev.effects[i], &model.dynamics).deviation;
+                Some(Simulated { trajectories, duals, deviation })
             })
             .collect()
     }
@@ -1182,7 +1294,7 @@ impl<'a> NonCentred<'a> {
             return y.to_vec();
         }
         let all: Vec<usize> = (0..self.frames.len()).collect();
-        let sim = self.simulate(y, &self.all_params(y), &all);
+        let sim = self.simulate(y, &self.all_params(y), &all, true);
         self.apply(y, &sim, model_coordinate)
     }
 
@@ -1192,7 +1304,7 @@ impl<'a> NonCentred<'a> {
             return x.to_vec();
         }
         let all: Vec<usize> = (0..self.frames.len()).collect();
-        let sim = self.simulate(x, &self.all_params(x), &all);
+        let sim = self.simulate(x, &self.all_params(x), &all, true);
         self.apply(x, &sim, |psi, dev, lambda, q| lambda * psi + (q - psi) / dev.powf(1.0 - lambda))
     }
 
@@ -1218,44 +1330,45 @@ impl<'a> NonCentred<'a> {
         let n = self.frames.len();
         let all: Vec<usize> = (0..n).collect();
         let params = self.all_params(y);
-        let sim = self.simulate(y, &params, &all);
+        let sim = self.simulate(y, &params, &all, true);
         let x = self.apply(y, &sim, model_coordinate);
         let mut g = vec![0.0; d.dim];
-        // `Psi`'s derivatives come from the physics prior's own dual simulation at `x` (the same
-        // trajectories: they start from the windows' first coordinates, which `x` and `y` share).
-        let sinks: Vec<RefCell<Vec<dynamics::Trajectory>>> = (0..n).map(|_| RefCell::new(Vec::new())).collect();
-        let mut lp = d.log_density_with(&x, &mut g, Some(&sinks));
+        // The density's physics prior takes the map's simulation (the same trajectories: they
+        // start from the windows' first coordinates, which `x` and `y` share) instead of running
+        // it again.
+        let replays: Vec<Replay> = sim.iter().map(|s| RefCell::new(s.as_ref().map_or_else(VecDeque::new, |s| s.duals.iter().cloned().collect()))).collect();
+        let mut lp = d.log_density_with(&x, &mut g, Some(&replays));
         grad.copy_from_slice(&g);
         if !lp.is_finite() {
             return lp;
         }
+        if replays.iter().any(|r| !r.borrow().is_empty()) {
+            // The physics prior takes every window of a part with non-centred frames; anything
+            // else is a bug, reported as a non-finite density, not a wrong value.
+            return f64::NAN;
+        }
         let log_sd = d.model.dynamics.deviation_log_sd;
         for (i, s) in sim.iter().enumerate() {
             let (Some(s), Some(o), Some((k, nk))) = (s, d.slots[i].q, d.slots[i].kd) else { continue };
-            let trajectories = sinks[i].borrow();
-            if trajectories.len() != d.ev.windows.len() {
-                // The physics prior simulates every window of a part with non-centred frames;
-                // anything else is a bug, reported as a non-finite density, not a wrong gradient.
-                return f64::NAN;
-            }
             let (xi, dims) = (d.slots[i].xi, kinematic_dims(d.slots[i].joint));
             // q_t = Psi_t + a (y_t - lambda Psi_t), a = sigma_d^(1 - lambda): dq/dy = a,
             // dq/dPsi = 1 - lambda a, dq/d xi_d = (1 - lambda) log_sd a (y_t - lambda Psi_t).
             let mut jacobian = 0.0;
             for &(w, kk, t, lambda) in &self.frames[i] {
                 let (gt, u) = (g[o + t], y[o + t]);
-                let tr = &trajectories[w];
+                // Directions of `tr`: kinodynamics, then the window's first coordinate, then `dims`.
+                let tr = &s.duals[w];
                 let a = s.deviation.powf(1.0 - lambda);
                 let gp = gt * (1.0 - lambda * a);
                 grad[o + t] = gt * a;
                 for j in 0..nk {
-                    grad[k + j] += gp * tr.d_xi[kk][j];
+                    grad[k + j] += gp * tr.d(kk, j);
                 }
                 for (m, &j) in dims.iter().enumerate() {
-                    grad[xi + j] += gp * tr.d_kinematic[kk][m];
+                    grad[xi + j] += gp * tr.d(kk, nk + 1 + m);
                 }
                 grad[k + 3] += gt * (u - lambda * s.trajectories[w][kk]) * (1.0 - lambda) * log_sd * a;
-                grad[o + d.ev.windows[w].frames[0]] += gp * tr.d_q0[kk];
+                grad[o + d.ev.windows[w].frames[0]] += gp * tr.d(kk, nk);
                 jacobian += 1.0 - lambda;
             }
             // The Jacobian's log determinant, sum of (1 - lambda) log sigma_d.
@@ -1266,19 +1379,27 @@ impl<'a> NonCentred<'a> {
         // of mass): forward differences, simulated in `f64` ([`cross_physics_differences`]).
         let parent = &d.structure.parent;
         let with_frames: Vec<usize> = (0..n).filter(|&i| !self.frames[i].is_empty()).collect();
-        let cross = cross_physics_differences(parent, &d.slots).into_iter().filter_map(|(j, idx, parts)| {
-            let parts: Vec<usize> = parts.into_iter().filter(|i| with_frames.contains(i)).collect();
-            (!parts.is_empty()).then_some((j, idx, parts))
-        });
+        let cross: Vec<(usize, usize, Vec<usize>)> = cross_physics_differences(parent, &d.slots)
+            .into_iter()
+            .filter_map(|(j, idx, parts)| {
+                let parts: Vec<usize> = parts.into_iter().filter(|i| with_frames.contains(i)).collect();
+                (!parts.is_empty()).then_some((j, idx, parts))
+            })
+            .collect();
+        if cross.is_empty() {
+            return lp;
+        }
+        // The differences' base, from the same `f64` path as the perturbed ones.
+        let base = self.simulate(y, &params, &with_frames, false);
         let mut yp = y.to_vec();
         for (j, idx, parts) in cross {
             yp[idx] = y[idx] + FD_STEP;
             let mut pp = params.clone();
             pp[j] = d.params(&yp, j);
-            let moved = self.simulate(&yp, &pp, &parts);
+            let moved = self.simulate(&yp, &pp, &parts, false);
             let mut acc = 0.0;
             for &i in &parts {
-                let (Some(a), Some(b), Some(o)) = (&sim[i], &moved[i], d.slots[i].q) else { continue };
+                let (Some(a), Some(b), Some(o)) = (&base[i], &moved[i], d.slots[i].q) else { continue };
                 for &(w, kk, t, lambda) in &self.frames[i] {
                     let c = 1.0 - lambda * a.deviation.powf(1.0 - lambda);
                     acc += g[o + t] * c * (b.trajectories[w][kk] - a.trajectories[w][kk]);

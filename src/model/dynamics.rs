@@ -530,20 +530,6 @@ fn simulate_scaled<T: Real>(
     Some(traj)
 }
 
-/// The derivatives of the simulated trajectory `Psi` of one joint in one window at the window's
-/// grid frames (`Psi` itself: [`window_psi`]), as the physics prior's dual simulation gives them
-/// (for non-centred coordinates, [`crate::model::density::NonCentred`]).
-#[derive(Debug, Clone)]
-pub struct Trajectory {
-    /// `d Psi_k / d xi_j` (`[k][j]`, `j` over the kinodynamic parameters).
-    pub d_xi: Vec<Vec<f64>>,
-    /// `d Psi_k / d q_{w,0}`.
-    pub d_q0: Vec<f64>,
-    /// `d Psi_k / d x_j` over the joint's own kinematic parameters that its physics depends on
-    /// (`[k][m]`, `m` over [`crate::model::density::kinematic_dims`]).
-    pub d_kinematic: Vec<Vec<f64>>,
-}
-
 /// `Psi_k`, the simulation `traj` (`None`: nothing moves the joint) at frame `k` of `win`, started
 /// at `q0`: `q0` at the window's first frame and wherever nothing moves the joint.
 pub(crate) fn psi_at<T: Real>(traj: Option<&Vec<T>>, win: &WindowEvidence, k: usize, q0: T) -> T {
@@ -555,7 +541,7 @@ pub(crate) fn psi_at<T: Real>(traj: Option<&Vec<T>>, win: &WindowEvidence, k: us
 }
 
 /// `Psi_k` at every frame of `win` \[m of path\], simulated in `f64`
-/// ([`crate::model::density::NonCentred`]'s map and its forward differences).
+/// ([`crate::model::density::NonCentred`]'s forward differences).
 pub fn window_psi(jw: &JointInWindow<'_>, win: &WindowEvidence, q0: f64, xi: &[f64], cfg: &DynamicsConfig) -> Vec<f64> {
     let kp = decode(jw.joint.joint, xi, &jw.effects, cfg);
     let traj = simulate_window(jw, win, q0, &kp, cfg);
@@ -759,8 +745,24 @@ pub(crate) fn window_terms<T: Real>(
     cfg: &DynamicsConfig,
     skip: Option<&[bool]>,
 ) -> (T, Vec<f64>, f64) {
-    let frames = &win.frames;
     // No force on the subtree, no spring, no gravity (`traj` None): the joint stays where it is.
+    let psi: Vec<T> = (0..win.frames.len()).map(|k| psi_at(traj.as_ref(), win, k, q0)).collect();
+    window_terms_at(&psi, win, q, observed, kp, cfg, skip)
+}
+
+/// [`window_terms`] for `Psi` given at the window's frames (`psi[k]` at `win.frames[k]`; `psi[0]`,
+/// the start, is not scored): what [`crate::model::density::NonCentred`] hands the density from
+/// the simulation its map already ran.
+pub(crate) fn window_terms_at<T: Real>(
+    psi: &[T],
+    win: &WindowEvidence,
+    q: &[f64],
+    observed: Option<&Observed>,
+    kp: &KinoParams<T>,
+    cfg: &DynamicsConfig,
+    skip: Option<&[bool]>,
+) -> (T, Vec<f64>, f64) {
+    let frames = &win.frames;
     let dev2 = kp.deviation * kp.deviation;
     let half_log_dev2 = dev2.ln() * 0.5;
     let mut ll = T::from(0.0);
@@ -768,7 +770,7 @@ pub(crate) fn window_terms<T: Real>(
     // The skipped frames' share of the value (their terms are leaves: each integrates to 1).
     let mut skipped_value = 0.0;
     for (k, &t) in frames.iter().enumerate().skip(1) {
-        let d = T::from(q[t]) - psi_at(traj.as_ref(), win, k, q0);
+        let d = T::from(q[t]) - psi[k];
         let term = match observed.map(|o| (o.var[t], o.nu)) {
             Some((r2, obs_nu)) if r2 > 0.0 => {
                 let var = dev2 + r2;
