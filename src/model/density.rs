@@ -521,29 +521,16 @@ fn dual_width(s: &PartValue<'_>) -> usize {
 }
 
 /// `Psi` of part `i` in window `win` at the window's frames, simulated in the dual numbers of
-/// [`window_prior_kinematic`] (the same arguments; [`NonCentred`]'s map).
-#[allow(clippy::too_many_arguments)]
-fn window_psi_kinematic(
-    ev: &Evidence,
-    i: usize,
-    s: &PartValue<'_>,
-    xk: &[f64],
-    win: &WindowEvidence,
-    pre: &[Displacement<f64>],
-    desc: &[usize],
-    chosen: &[PartValue<'_>],
-    transforms: &[Vec<Displacement<f64>>],
-    model: &ModelConfig,
-    jw: &dynamics::JointInWindow<'_>,
-) -> FramePsi {
+/// [`window_prior_kinematic`] (its arguments, as a tuple; observations, skips and replay unused;
+/// [`NonCentred`]'s map).
+fn window_psi_kinematic(args: KinematicArgs<'_, '_>) -> FramePsi {
     fn psi<const N: usize>(args: KinematicArgs<'_, '_>) -> FramePsi {
         let (ev, i, s, _, _, _, _, _, _, model, ..) = args;
         let xd = kinodynamic_duals::<N>(s);
         let kp = dynamics::decode(s.params.joint, &xd, &ev.effects[i], &model.dynamics);
         FramePsi::from_dual(&simulate_kinematic_n::<N>(args, &kp))
     }
-    let args = (ev, i, s, xk, win, pre, desc, chosen, transforms, model, jw, None, None, None);
-    match dual_width(s) {
+    match dual_width(args.2) {
         8 => psi::<8>(args),
         14 => psi::<14>(args),
         _ => psi::<21>(args),
@@ -1271,7 +1258,7 @@ impl<'a> NonCentred<'a> {
                     let wj = window_joint(ev, i, &values[i], win, &pre, &desc, &values, &transforms, model);
                     let jw = wj.view(ev.effects[i]);
                     if dual {
-                        let psi = window_psi_kinematic(ev, i, &values[i], xk, win, &pre, &desc, &values, &transforms, model, &jw);
+                        let psi = window_psi_kinematic((ev, i, &values[i], xk, win, &pre, &desc, &values, &transforms, model, &jw, None, None, None));
                         trajectories.push(psi.re.clone());
                         duals.push(psi);
                     } else {
