@@ -331,7 +331,7 @@ pub(crate) struct FramePsi {
     n: usize,
     /// `Psi_k` \[m of path\].
     re: Vec<f64>,
-    /// `d Psi_k / d direction_j` at `eps[k * n + j]`.
+    /// The derivative of `Psi_k` along dual direction `j` at `eps[k * n + j]`.
     eps: Vec<f64>,
 }
 
@@ -355,7 +355,7 @@ impl FramePsi {
         })
     }
 
-    /// `d Psi_k / d direction_j`.
+    /// The derivative of `Psi_k` along dual direction `j`.
     fn d(&self, k: usize, j: usize) -> f64 {
         self.eps[k * self.n + j]
     }
