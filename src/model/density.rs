@@ -1157,12 +1157,34 @@ fn model_coordinate(psi: f64, dev: f64, lambda: f64, y: f64) -> f64 {
 
 /// A part's simulated trajectories per window and its deviation scale at some coordinates.
 struct Simulated {
-    /// `Psi` per window, at the window's frames.
-    trajectories: Vec<Vec<f64>>,
-    /// The same with their derivatives, per window, when simulated in dual numbers (empty when
-    /// in `f64`).
-    duals: Vec<FramePsi>,
+    trajectories: Trajectories,
     deviation: f64,
+}
+
+/// `Psi` per window, at the window's frames.
+enum Trajectories {
+    /// With their derivatives (the map and the density).
+    Dual(Vec<FramePsi>),
+    /// Values alone (forward differences).
+    Value(Vec<Vec<f64>>),
+}
+
+impl Simulated {
+    /// `Psi` of window `w` at its frame `k`.
+    fn psi(&self, w: usize, k: usize) -> f64 {
+        match &self.trajectories {
+            Trajectories::Dual(d) => d[w].re[k],
+            Trajectories::Value(v) => v[w][k],
+        }
+    }
+
+    /// The windows' dual simulations (none when simulated in `f64`).
+    fn duals(&self) -> &[FramePsi] {
+        match &self.trajectories {
+            Trajectories::Dual(d) => d,
+            Trajectories::Value(_) => &[],
+        }
+    }
 }
 
 impl<'a> NonCentred<'a> {
@@ -1253,20 +1275,15 @@ impl<'a> NonCentred<'a> {
                 let desc = tree::descendants(parent, i);
                 let s = &d.slots[i];
                 let xk = &y[s.xi..s.xi + s.np];
-                let (mut trajectories, mut duals) = (Vec::new(), Vec::new());
-                for win in &ev.windows {
-                    let wj = window_joint(ev, i, &values[i], win, &pre, &desc, &values, &transforms, model);
-                    let jw = wj.view(ev.effects[i]);
-                    if dual {
-                        let psi = window_psi_kinematic((ev, i, &values[i], xk, win, &pre, &desc, &values, &transforms, model, &jw, None, None, None));
-                        trajectories.push(psi.re.clone());
-                        duals.push(psi);
-                    } else {
-                        trajectories.push(dynamics::window_psi(&jw, win, values[i].q[win.frames[0]], xi, &model.dynamics));
-                    }
-                }
+                let joints: Vec<WindowJoint> = ev.windows.iter().map(|win| window_joint(ev, i, &values[i], win, &pre, &desc, &values, &transforms, model)).collect();
+                let windows = ev.windows.iter().zip(&joints);
+                let trajectories = if dual {
+                    Trajectories::Dual(windows.map(|(win, wj)| window_psi_kinematic((ev, i, &values[i], xk, win, &pre, &desc, &values, &transforms, model, &wj.view(ev.effects[i]), None, None, None))).collect())
+                } else {
+                    Trajectories::Value(windows.map(|(win, wj)| dynamics::window_psi(&wj.view(ev.effects[i]), win, values[i].q[win.frames[0]], xi, &model.dynamics)).collect())
+                };
                 let deviation = dynamics::decode::<f64>(s.joint, xi, &ev.effects[i], &model.dynamics).deviation;
-                Some(Simulated { trajectories, duals, deviation })
+                Some(Simulated { trajectories, deviation })
             })
             .collect()
     }
@@ -1301,7 +1318,7 @@ impl<'a> NonCentred<'a> {
         for (i, s) in sim.iter().enumerate() {
             let (Some(s), Some(o)) = (s, self.density.slots[i].q) else { continue };
             for &(w, k, t, lambda) in &self.frames[i] {
-                out[o + t] = f(s.trajectories[w][k], s.deviation, lambda, v[o + t]);
+                out[o + t] = f(s.psi(w, k), s.deviation, lambda, v[o + t]);
             }
         }
         out
@@ -1323,7 +1340,7 @@ impl<'a> NonCentred<'a> {
         // The density's physics prior takes the map's simulation (the same trajectories: they
         // start from the windows' first coordinates, which `x` and `y` share) instead of running
         // it again.
-        let replays: Vec<Replay> = sim.iter().map(|s| RefCell::new(s.as_ref().map_or_else(VecDeque::new, |s| s.duals.iter().cloned().collect()))).collect();
+        let replays: Vec<Replay> = sim.iter().map(|s| RefCell::new(s.as_ref().map_or_else(VecDeque::new, |s| s.duals().iter().cloned().collect()))).collect();
         let mut lp = d.log_density_with(&x, &mut g, Some(&replays));
         grad.copy_from_slice(&g);
         if !lp.is_finite() {
@@ -1344,7 +1361,7 @@ impl<'a> NonCentred<'a> {
             for &(w, kk, t, lambda) in &self.frames[i] {
                 let (gt, u) = (g[o + t], y[o + t]);
                 // Directions of `tr`: kinodynamics, then the window's first coordinate, then `dims`.
-                let tr = &s.duals[w];
+                let tr = &s.duals()[w];
                 let a = s.deviation.powf(1.0 - lambda);
                 let gp = gt * (1.0 - lambda * a);
                 grad[o + t] = gt * a;
@@ -1354,7 +1371,7 @@ impl<'a> NonCentred<'a> {
                 for (m, &j) in dims.iter().enumerate() {
                     grad[xi + j] += gp * tr.d(kk, nk + 1 + m);
                 }
-                grad[k + 3] += gt * (u - lambda * s.trajectories[w][kk]) * (1.0 - lambda) * log_sd * a;
+                grad[k + 3] += gt * (u - lambda * s.psi(w, kk)) * (1.0 - lambda) * log_sd * a;
                 grad[o + d.ev.windows[w].frames[0]] += gp * tr.d(kk, nk);
                 jacobian += 1.0 - lambda;
             }
@@ -1389,7 +1406,7 @@ impl<'a> NonCentred<'a> {
                 let (Some(a), Some(b), Some(o)) = (&base[i], &moved[i], d.slots[i].q) else { continue };
                 for &(w, kk, t, lambda) in &self.frames[i] {
                     let c = 1.0 - lambda * a.deviation.powf(1.0 - lambda);
-                    acc += g[o + t] * c * (b.trajectories[w][kk] - a.trajectories[w][kk]);
+                    acc += g[o + t] * c * (b.psi(w, kk) - a.psi(w, kk));
                 }
             }
             grad[idx] += acc / FD_STEP;
