@@ -85,18 +85,19 @@ pub struct NutsConfig {
     pub target_accept: f64,
     /// Largest tree depth (at most `2^maxdepth` leapfrog steps per draw).
     pub maxdepth: u64,
-    /// Dynamic mode: sample the coordinates in windows non-centred, `q_t = Psi_t + sigma_d u_t`
-    /// ([`NonCentred`], why there); false samples them as they are (the default since stop 90,
-    /// with `shear`). Stop 108 (README "BOM-NUTS"): over three seeds non-centred is faster on
-    /// `microwave` and `drawer`, slower on `slidecabinet`, and takes fewer steps on three of four
-    /// held-out 2-part objects, but 0.3-0.75% of its draws diverge where the centred sampler's do
-    /// not, and 1.87% on a held-out lid (over the 1% limit); not switched.
+    /// Dynamic mode: sample the coordinates in windows fully non-centred, `q_t = Psi_t + sigma_d
+    /// u_t` ([`NonCentred`], why there); overrides `partial_centring`. Stop 108 (README "BOM-NUTS"):
+    /// over three seeds it is faster than the centred sampler on `microwave` and `drawer`, slower
+    /// on `slidecabinet`, but 0.3-0.75% of its draws diverge where the centred sampler's do not,
+    /// and 1.87% on a held-out lid (over the 1% limit).
     pub non_centred: bool,
     /// Dynamic mode: sample the coordinates in windows partially non-centred, each with its own
     /// centring `lambda_t = 1 - (s_t / sigma_d)^2` from SVI's guide (`s_t` the guide's sd of the
     /// coordinate, `sigma_d` the deviation scale at the guide's mean; [`NonCentred::partial`]):
     /// centred where the observations pin a coordinate more tightly than the physics, non-centred
-    /// where the physics does. Overrides `non_centred`.
+    /// where the physics does. The default since stop 109 (chosen on `tune` 2-part objects and the
+    /// shipped 2-part bags, reported on held-out ones: README "BOM-NUTS", stop 109); false samples
+    /// the coordinates as they are (centred, the default of stops 90-108).
     pub partial_centring: bool,
     /// Dynamic mode: precondition each movable part's damping and friction with a shear (the
     /// private `Block`) that follows the curved ridge on which they trade (on since stop 90).
@@ -125,7 +126,7 @@ impl Default for NutsConfig {
             target_accept: 0.95,
             maxdepth: 10,
             non_centred: false,
-            partial_centring: false,
+            partial_centring: true,
             shear: true,
             structure_mass: 0.99,
             max_structures: 4,
@@ -467,12 +468,13 @@ fn preconditioner(density: &Density<'_>, guide: &GuideState, model: &ModelConfig
     out
 }
 
-/// The coordinates the sampler moves: partially non-centred by `centring` (from
-/// [`centring_from_guide`], `nuts.partial_centring`), else as `nuts.non_centred` says.
+/// The coordinates the sampler moves: fully non-centred when `nuts.non_centred` is set, else
+/// partially non-centred by `centring` (from [`centring_from_guide`], `nuts.partial_centring`),
+/// else centred.
 fn coordinates<'d>(density: Density<'d>, centring: Option<&[Vec<f64>]>, non_centred: bool) -> NonCentred<'d> {
     match centring {
-        Some(lambda) => NonCentred::partial(density, |i, t| lambda[i].get(t).copied()),
-        None => NonCentred::new(density, non_centred),
+        Some(lambda) if !non_centred => NonCentred::partial(density, |i, t| lambda[i].get(t).copied()),
+        _ => NonCentred::new(density, non_centred),
     }
 }
 
@@ -552,7 +554,7 @@ fn run_chains<S: Settings>(settings: S, job: &Job<'_>, diagnose: &Diagnose<'_>) 
     // One preconditioner and one centring for all chains: they depend on the guide only.
     let blocks = preconditioner(&Density::new(ev, model, structure.clone()), guide, model, cfg.shear);
     let blocks = blocks.as_slice();
-    let centring = cfg.partial_centring.then(|| centring_from_guide(&Density::new(ev, model, structure.clone()), guide, model));
+    let centring = (cfg.partial_centring && !cfg.non_centred).then(|| centring_from_guide(&Density::new(ev, model, structure.clone()), guide, model));
     let centring = centring.as_deref();
     std::thread::scope(|scope| {
         let (tx, rx) = mpsc::channel::<(usize, Result<Round, String>)>();
@@ -571,7 +573,7 @@ fn run_chains<S: Settings>(settings: S, job: &Job<'_>, diagnose: &Diagnose<'_>) 
                     let mut rng = ChaCha8Rng::seed_from_u64(seed.wrapping_add(1000 * c as u64));
                     let x0 = start_from_guide(&density, guide, &mut rng);
                     let logp = Logp { blocks: blocks.to_vec(), density: coordinates(density, centring, cfg.non_centred) };
-                    if c == 0 && cfg.partial_centring {
+                    if c == 0 && centring.is_some() {
                         let (low, all) = logp.density.centring_summary();
                         tracing::debug!("NUTS: {low} of {all} window coordinates mostly non-centred (lambda < 0.5)");
                     }
