@@ -468,13 +468,13 @@ fn preconditioner(density: &Density<'_>, guide: &GuideState, model: &ModelConfig
     out
 }
 
-/// The coordinates the sampler moves: fully non-centred when `nuts.non_centred` is set, else
-/// partially non-centred by `centring` (from [`centring_from_guide`], `nuts.partial_centring`),
-/// else centred.
+/// The coordinates the sampler moves: partially non-centred by `centring` (from
+/// [`centring_from_guide`]; [`run_chains`] gives none when `nuts.non_centred` is set, which
+/// overrides `nuts.partial_centring`), else as `nuts.non_centred` says.
 fn coordinates<'d>(density: Density<'d>, centring: Option<&[Vec<f64>]>, non_centred: bool) -> NonCentred<'d> {
     match centring {
-        Some(lambda) if !non_centred => NonCentred::partial(density, |i, t| lambda[i].get(t).copied()),
-        _ => NonCentred::new(density, non_centred),
+        Some(lambda) => NonCentred::partial(density, |i, t| lambda[i].get(t).copied()),
+        None => NonCentred::new(density, non_centred),
     }
 }
 
@@ -554,6 +554,7 @@ fn run_chains<S: Settings>(settings: S, job: &Job<'_>, diagnose: &Diagnose<'_>) 
     // One preconditioner and one centring for all chains: they depend on the guide only.
     let blocks = preconditioner(&Density::new(ev, model, structure.clone()), guide, model, cfg.shear);
     let blocks = blocks.as_slice();
+    // `non_centred` overrides `partial_centring`.
     let centring = (cfg.partial_centring && !cfg.non_centred).then(|| centring_from_guide(&Density::new(ev, model, structure.clone()), guide, model));
     let centring = centring.as_deref();
     std::thread::scope(|scope| {
