@@ -126,8 +126,8 @@ fn inference(c: &mut Criterion) {
     g.finish();
 }
 
-/// BOM-NUTS (issue 26): one evaluation of the log density and its gradient on the drawer bag
-/// (dynamic mode, 2 parts, 4 windows; centred and non-centred coordinates), which times the
+/// BOM-NUTS (issue 26): one evaluation of the log density and its gradient on the drawer and
+/// microwave bags (dynamic mode, 2 parts, 4 windows; centred and non-centred coordinates), which times the
 /// number of leapfrog steps is a dynamic run's cost, and the whole sampler with its defaults
 /// (4 chains x 1000 + 1000) on a real door track (kinematic mode). The dynamic run itself is
 /// minutes long and is timed by `bom replay bags/mujoco/drawer.mcap --inference nuts --timing`.
@@ -136,18 +136,22 @@ fn nuts(c: &mut Criterion) {
     use bom::model::density::{Density, NonCentred, Structure};
     use rand::SeedableRng;
     let cfg = Config::new();
-    let run = bom::pipeline::replay(&[PathBuf::from("bags/mujoco/drawer.mcap")], &cfg).expect("bundled bag");
-    let ev = bom::pipeline::final_evidence(&run, &cfg);
-    let fitted = svi::fit(&ev, &cfg.model, &cfg.inference, None).expect("a fit");
-    let joints = &fitted.posterior.joints;
-    let structure = Structure { parent: joints.iter().map(|j| j.parent_index).collect(), types: joints.iter().map(|j| j.map_type).collect() };
     let mut g = c.benchmark_group("nuts");
-    for (name, non_centred) in [("centred", false), ("non-centred", true)] {
-        let nc = NonCentred::new(Density::new(&ev, &cfg.model, structure.clone()), non_centred);
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
-        let y = nc.from_model(&nuts::start_from_guide(nc.density(), &fitted.guide, &mut rng));
-        let mut grad = vec![0.0; y.len()];
-        g.bench_function(format!("log density and gradient, drawer (2 parts, 4 windows), {name}"), |b| b.iter(|| nc.log_density(black_box(&y), &mut grad)));
+    // A prismatic and a revolute joint: a revolute window's gradient costs about twice a
+    // prismatic one's (its generalised force and inertia turn with the axis and hinge point).
+    for bag in ["drawer", "microwave"] {
+        let run = bom::pipeline::replay(&[PathBuf::from(format!("bags/mujoco/{bag}.mcap"))], &cfg).expect("bundled bag");
+        let ev = bom::pipeline::final_evidence(&run, &cfg);
+        let fitted = svi::fit(&ev, &cfg.model, &cfg.inference, None).expect("a fit");
+        let joints = &fitted.posterior.joints;
+        let structure = Structure { parent: joints.iter().map(|j| j.parent_index).collect(), types: joints.iter().map(|j| j.map_type).collect() };
+        for (name, non_centred) in [("centred", false), ("non-centred", true)] {
+            let nc = NonCentred::new(Density::new(&ev, &cfg.model, structure.clone()), non_centred);
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+            let y = nc.from_model(&nuts::start_from_guide(nc.density(), &fitted.guide, &mut rng));
+            let mut grad = vec![0.0; y.len()];
+            g.bench_function(format!("log density and gradient, {bag} (2 parts, 4 windows), {name}"), |b| b.iter(|| nc.log_density(black_box(&y), &mut grad)));
+        }
     }
     let bag: PathBuf = "bags/sturm/left_door_001.mcap".into();
     let run = bom::pipeline::replay(std::slice::from_ref(&bag), &cfg).expect("bundled bag");

@@ -343,8 +343,9 @@ fn nuts_samples_the_model_svi_fitted() {
 }
 
 /// A real door track (kinematic mode) with the low-rank mass matrix: chains whose diagnostics
-/// miss a limit go on by `draws` until `max_draws` (an unreachable R-hat limit forces every
-/// extension, and the report says so); with reachable limits they stop as soon as both hold.
+/// miss a limit go on by `extend_draws` while another round fits under `max_draws` (an
+/// unreachable R-hat limit forces every extension, and the report says so); with reachable
+/// limits they stop as soon as both hold.
 /// The report counts the draws every chain took (the divergence check's denominator).
 #[test]
 fn nuts_extends_chains_until_the_diagnostics_hold() {
@@ -354,13 +355,17 @@ fn nuts_extends_chains_until_the_diagnostics_hold() {
     let ev = bom::pipeline::final_evidence(&run, &cfg);
     assert!(ev.windows.is_empty(), "a real track has no wrench: kinematic mode");
     let fitted = svi::fit(&ev, &cfg.model, &cfg.inference, None).expect("a fit");
-    let base = NutsConfig { chains: 2, tune: 200, draws: 100, max_structures: 1, mass_matrix: nuts::MassMatrix::LowRank, ..NutsConfig::default() };
+    let base = NutsConfig { chains: 2, tune: 200, draws: 100, extend_draws: 100, max_structures: 1, mass_matrix: nuts::MassMatrix::LowRank, ..NutsConfig::default() };
     let never = NutsConfig { max_draws: 300, r_hat_max: 0.5, ..base.clone() };
     let (_, report) = nuts::sample(&ev, &cfg.model, &fitted, &never).expect("NUTS runs");
     assert_eq!(report.draws, 300, "{report:?}");
     // The divergences' denominator: every chain's draws (2 chains, one structure).
     assert_eq!(report.total_draws, 600, "{report:?}");
     assert!(report.warnings.iter().any(|w| w.contains("R-hat")), "{report:?}");
+    // Rounds of 80 after the first 100: 180, 260; a fourth round would pass 300.
+    let (_, report) = nuts::sample(&ev, &cfg.model, &fitted, &NutsConfig { extend_draws: 80, ..never }).expect("NUTS runs");
+    assert_eq!(report.draws, 260, "{report:?}");
+    assert_eq!(report.total_draws, 520, "{report:?}");
     let easy = NutsConfig { max_draws: 300, r_hat_max: 10.0, ess_bulk_min: 1.0, divergence_share_max: 1.0, ..base };
     let (post, report) = nuts::sample(&ev, &cfg.model, &fitted, &easy).expect("NUTS runs");
     assert_eq!(report.draws, 100, "{report:?}");

@@ -1,9 +1,9 @@
 //! BOM-NUTS: the No-U-Turn sampler (Hoffman and Gelman, *JMLR* 15, 2014; the paper's BOM-NUTS
 //! row of Table 1) on the model's log density ([`crate::model::density`]), with the `nuts-rs`
 //! crate (PyMC's sampler: step size by dual averaging, a diagonal or diagonal-plus-low-rank mass
-//! matrix adapted in warm-up, [`MassMatrix`]). A structure's chains go on in rounds of `draws`
-//! while its R-hat or bulk ESS misses the limit, up to `max_draws` (the warm-up's adaptation
-//! kept; the diagnostics are those of all the draws).
+//! matrix adapted in warm-up, [`MassMatrix`]). A structure's chains draw `draws` each, then go on
+//! in rounds of `extend_draws` while its R-hat or bulk ESS misses the limit, up to `max_draws`
+//! (the warm-up's adaptation kept; the diagnostics are those of all the draws).
 //!
 //! NUTS samples continuous latents only, so the discrete ones — the tree and the joint types —
 //! are conditioned on: the structures that hold at least `structure_mass` of the SVI posterior's
@@ -68,12 +68,17 @@ pub struct NutsConfig {
     pub tune: u64,
     pub draws: u64,
     /// Most sampling draws per chain: while a structure's R-hat or bulk ESS misses its limit, its
-    /// chains go on by `draws` more (the warm-up's adaptation kept), up to this many (at most
-    /// `draws` when smaller: no extension). 8,000 since stop 93 (4,000 before): a compute limit,
+    /// chains go on by `extend_draws` more (the warm-up's adaptation kept), up to this many (at
+    /// most `draws` when smaller: no extension). 8,000 since stop 93 (4,000 before): a compute limit,
     /// not a model setting — it changes nothing on a run whose diagnostics hold sooner; the `tune`
     /// objects `obj090` and `obj096` and the shipped `hingecabinet` (dynamic mode) reach R-hat
     /// <= 1.01 and bulk ESS >= 400 at 5,000-6,000 draws and missed them at 4,000 (README, stop 93).
     pub max_draws: u64,
+    /// Draws a chain per extension round (at least 1). A compute schedule, not a model setting: a
+    /// run stops after the first round whose diagnostics hold, so a shorter round stops nearer
+    /// the draws the diagnostics need. 250 since stop 110 (before: `draws`, 1,000 on the shipped
+    /// config, which on `microwave` drew 1,000 more after R-hat missed by 0.001-0.008).
+    pub extend_draws: u64,
     /// The mass matrix adapted in warm-up: `diag` (a variance per coordinate) or `low_rank`
     /// (nuts-rs's diagonal plus low-rank update from the draws' and gradients' covariance:
     /// Seyboldt's covadapt), which follows the correlations between an axis and the joint
@@ -122,6 +127,7 @@ impl Default for NutsConfig {
             tune: 1000,
             draws: 1000,
             max_draws: 8000,
+            extend_draws: 250,
             mass_matrix: MassMatrix::LowRank,
             target_accept: 0.95,
             maxdepth: 10,
@@ -524,9 +530,9 @@ struct Job<'a> {
     seed: u64,
 }
 
-/// Run the chains of one structure: warm-up and `cfg.draws` sampling draws each, then `cfg.draws`
-/// more while `diagnose` (given every chain's draws so far) misses the R-hat or ESS limit, up to
-/// `cfg.max_draws`.
+/// Run the chains of one structure: warm-up and `cfg.draws` sampling draws each, then
+/// `cfg.extend_draws` more while `diagnose` (given every chain's draws so far) misses the R-hat or
+/// ESS limit, up to `cfg.max_draws`.
 fn sample_structure(job: &Job<'_>, diagnose: &Diagnose<'_>) -> Result<StructureDraws, String> {
     let cfg = job.cfg;
     match cfg.mass_matrix {
@@ -550,6 +556,7 @@ fn run_chains<S: Settings>(settings: S, job: &Job<'_>, diagnose: &Diagnose<'_>) 
     let Job { ev, model, structure, guide, cfg, seed } = *job;
     let chains = cfg.chains.max(1);
     let round = cfg.draws.max(1);
+    let extend = cfg.extend_draws.max(1);
     let most = cfg.max_draws.max(round);
     // One preconditioner and one centring for all chains: they depend on the guide only.
     let blocks = preconditioner(&Density::new(ev, model, structure.clone()), guide, model, cfg.shear);
@@ -668,14 +675,14 @@ fn run_chains<S: Settings>(settings: S, job: &Job<'_>, diagnose: &Diagnose<'_>) 
             }
             let taken = draws.iter().map(|d| d.len() as u64).min().unwrap_or(0);
             let (r_hat, ess_bulk) = diagnose(&draws);
-            let more = taken + round <= most && !(r_hat_ok(r_hat, cfg) && ess_ok(ess_bulk, cfg));
+            let more = taken + extend <= most && !(r_hat_ok(r_hat, cfg) && ess_ok(ess_bulk, cfg));
             for ctx in &commands {
-                let _ = ctx.send(if more { round } else { 0 });
+                let _ = ctx.send(if more { extend } else { 0 });
             }
             if !more {
                 return Ok(StructureDraws { draws, divergences, r_hat, ess_bulk });
             }
-            tracing::debug!("NUTS: diagnostics missed after {taken} draws a chain (R-hat {r_hat:.3}, bulk ESS {ess_bulk:.0}); {round} more");
+            tracing::debug!("NUTS: diagnostics missed after {taken} draws a chain (R-hat {r_hat:.3}, bulk ESS {ess_bulk:.0}); {extend} more");
         }
     })
 }

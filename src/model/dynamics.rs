@@ -396,7 +396,7 @@ pub fn simulate_window<T: Real>(jw: &JointInWindow<'_>, win: &WindowEvidence, q0
 /// [`crate::prediction`] starts mid-push; the model's windows start at rest).
 pub fn simulate_joint<T: Real>(jw: &JointInWindow<'_>, win: &WindowEvidence, q0: T, v0: T, kp: &KinoParams<T>, cfg: &DynamicsConfig) -> Option<Vec<T>> {
     let scale = if jw.joint.joint == JointType::Revolute { jw.joint.radius } else { 1.0 };
-    simulate_scaled(jw, &WindowGeometry::lifted(jw), scale, win, q0, v0, kp, cfg)
+    simulate_scaled(jw, &WindowGeometry::lifted(jw), scale, win, q0, v0, kp, cfg, false)
 }
 
 /// The geometry of one joint in one window as the physics sees it (fixed frame, at the window's
@@ -436,9 +436,9 @@ impl<T: Real> WindowGeometry<T> {
 /// effects it still uses), the radius's derivatives carried.
 pub fn simulate_joint_in<T: Real>(jw: &JointInWindow<'_>, geom: &WindowGeometry<T>, win: &WindowEvidence, q0: T, v0: T, kp: &KinoParams<T>, cfg: &DynamicsConfig) -> Option<Vec<T>> {
     if jw.joint.joint == JointType::Revolute {
-        simulate_scaled(jw, geom, Radius(geom.radius), win, q0, v0, kp, cfg)
+        simulate_scaled(jw, geom, Radius(geom.radius), win, q0, v0, kp, cfg, true)
     } else {
-        simulate_scaled(jw, geom, 1.0, win, q0, v0, kp, cfg)
+        simulate_scaled(jw, geom, 1.0, win, q0, v0, kp, cfg, true)
     }
 }
 
@@ -474,6 +474,9 @@ impl<T: Real> PathScale<T> for Radius<T> {
     }
 }
 
+/// [`simulate_joint`] and [`simulate_joint_in`]: `geom`'s joint, the path-to-coordinate `scale`;
+/// `axis_derivatives` when the axis carries derivatives (the substep forces then by
+/// [`super::physics::generalised_forces_of`], else by the per-substep form as always).
 #[allow(clippy::too_many_arguments)]
 fn simulate_scaled<T: Real>(
     jw: &JointInWindow<'_>,
@@ -484,6 +487,7 @@ fn simulate_scaled<T: Real>(
     v0: T,
     kp: &KinoParams<T>,
     cfg: &DynamicsConfig,
+    axis_derivatives: bool,
 ) -> Option<Vec<T>> {
     // Joint coordinate of the physics: the angle for a revolute joint (path / radius), metres for
     // a prismatic one.
@@ -500,9 +504,15 @@ fn simulate_scaled<T: Real>(
     bodies.extend(geom.subtree.iter().map(|&(m, com, unit)| (m, com, unit.map(|u| u * m))));
     let (d, point) = (&geom.direction, &geom.point);
     let inertia = generalised_inertia(kind, d, point, &bodies);
-    let tau: Vec<T> = (0..last)
-        .map(|n| if jw.pushed { super::physics::generalised_force_of(kind, d, point, &win.point[n], &win.force[n], &win.torque[n]) } else { T::from(0.0) })
-        .collect();
+    let tau: Vec<T> = if !jw.pushed {
+        vec![T::from(0.0); last]
+    } else if axis_derivatives {
+        super::physics::generalised_forces_of(kind, d, point, &win.point[..last], &win.force[..last], &win.torque[..last])
+    } else {
+        // A constant axis (SVI, prediction, criticism): the force as it always was, to the last
+        // bit (SVI's fits amplify rounding: README, stop 110).
+        (0..last).map(|n| super::physics::generalised_force_of(kind, d, point, &win.point[n], &win.force[n], &win.torque[n])).collect()
+    };
     let mut jd = JointDynamics::new(inertia, kp.damping, kp.friction, kp.stiffness, scale.to_joint(kp.rest));
     if let Some((lower, upper, stiffness)) = kp.limit {
         let stop = |position: T, upper: bool| JointLimit { position: scale.to_joint(position), stiffness, upper, width: scale.to_joint(T::from(cfg.effects.limit_width_m)) };
