@@ -57,7 +57,10 @@ fn checked_dims(density: &Density, ev: &bom::model::likelihood::Evidence, window
         if let Some(o) = s.q {
             dims.extend((0..ev.len()).step_by((ev.len() / 8).max(1)).map(|t| o + t));
             if windows {
-                dims.extend(ev.windows.iter().flat_map(|w| [o + w.frames[0], o + w.frames[w.frames.len() / 2]]));
+                dims.extend(ev.windows.iter().flat_map(|w| [o + w.frames[0], o + w.frames[w.frames.len() / 2], o + w.frames[w.frames.len() - 1]]));
+                // Rest frames before and after each window (non-centred about the window's first
+                // and last coordinate).
+                dims.extend(ev.windows.iter().flat_map(|w| w.rest_before.first().into_iter().chain(w.rest.first()).chain(w.rest.last()).map(|&t| o + t)));
             }
         }
     }
@@ -88,10 +91,12 @@ fn density_gradient_matches_finite_differences() {
     assert!(bad.is_empty(), "gradient vs central differences (index, gradient, fd): {bad:?}");
 }
 
-/// The non-centred coordinates (`q_t = Psi_t + sigma_d u_t` in windows) are the same density: the
-/// map round-trips, and its gradient — with the chain rule through the simulated trajectory and
-/// the Jacobian — agrees with central differences on every kinematic and kinodynamic parameter,
-/// on non-centred `u_t` and on the windows' first coordinates (which `Psi` starts from).
+/// The non-centred coordinates (`q_t = Psi_t + sigma_d u_t` in windows, `q_b = q_a + sigma_d u_b`
+/// at rest frames) are the same density: the map round-trips, and its gradient — with the chain
+/// rule through the simulated trajectory and the rest frames' anchors, and the Jacobian — agrees
+/// with central differences on every kinematic and kinodynamic parameter, on non-centred `u_t`,
+/// on rest frames and on the windows' first and last coordinates (which `Psi` starts from and
+/// the rest frames after it are anchored to).
 #[test]
 fn non_centred_density_gradient_matches_finite_differences() {
     let (cfg, ev, fitted) = drawer();
@@ -104,6 +109,8 @@ fn non_centred_density_gradient_matches_finite_differences() {
     let worst = x.iter().zip(&back).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
     assert!(worst < 1e-9, "round trip moves a coordinate by {worst}");
     assert!(x.iter().zip(&y).any(|(a, b)| (a - b).abs() > 1e-6), "some coordinates are non-centred");
+    let rest_moved = density.slots().iter().filter_map(|s| s.q).any(|o| ev.windows.iter().flat_map(|w| w.rest.iter().chain(&w.rest_before)).any(|&t| (x[o + t] - y[o + t]).abs() > 1e-6));
+    assert!(rest_moved, "rest frames are non-centred too");
     let mut g = vec![0.0; density.dim()];
     let l = nc.log_density(&y, &mut g);
     assert!(l.is_finite(), "log density {l}");

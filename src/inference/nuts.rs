@@ -64,7 +64,11 @@ pub struct NutsConfig {
     pub enabled: bool,
     /// Chains per structure (run in parallel, one thread each).
     pub chains: usize,
-    /// Warm-up (tuning) and sampling draws per chain.
+    /// Warm-up (tuning) and sampling draws per chain. Warm-up 800 since stop 111 (nuts-rs's own
+    /// default for its low-rank sampler; 1,000 before, Stan's and PyMC's): a compute setting, run
+    /// on the `tune` split's dynamic-mode objects and reported on held-out ones (README, stop
+    /// 111); at stop 110, before the rest frames were non-centred, 500 let a `microwave` chain
+    /// stick in the deviation scale's funnel.
     pub tune: u64,
     pub draws: u64,
     /// Most sampling draws per chain: while a structure's R-hat or bulk ESS misses its limit, its
@@ -107,6 +111,11 @@ pub struct NutsConfig {
     /// Dynamic mode: precondition each movable part's damping and friction with a shear (the
     /// private `Block`) that follows the curved ridge on which they trade (on since stop 90).
     pub shear: bool,
+    /// Scale each chain's coordinates so that nuts-rs's first mass matrix is SVI's guide's
+    /// variances instead of the start's inverse gradient (the private `start_scales`, why there).
+    /// On since stop 111. A constant change of the sampler's coordinates: the posterior is the
+    /// same; the warm-up's first draws are cheaper.
+    pub start_scales: bool,
     /// Structures sampled: those holding this much of the SVI posterior's mass, at most
     /// `max_structures`.
     pub structure_mass: f64,
@@ -124,7 +133,7 @@ impl Default for NutsConfig {
         NutsConfig {
             enabled: false,
             chains: 4,
-            tune: 1000,
+            tune: 800,
             draws: 1000,
             max_draws: 8000,
             extend_draws: 250,
@@ -134,6 +143,7 @@ impl Default for NutsConfig {
             non_centred: false,
             partial_centring: true,
             shear: true,
+            start_scales: true,
             structure_mass: 0.99,
             max_structures: 4,
             r_hat_max: 1.01,
@@ -209,6 +219,8 @@ struct Logp<'a> {
     density: NonCentred<'a>,
     /// The preconditioner of each part's kinodynamic block.
     blocks: Vec<Block>,
+    /// The sampler's coordinate is the blocks' divided by this, elementwise ([`start_scales`]).
+    scale: Vec<f64>,
 }
 
 /// The preconditioner of one kinodynamic block at offset `offset` of the coordinates: the sampler's
@@ -270,12 +282,14 @@ impl Block {
     }
 }
 
-/// Model coordinates `x` of sampler coordinates `z` under the preconditioner `blocks` of [`Logp`].
-fn to_model(blocks: &[Block], z: &[f64]) -> Vec<f64> {
-    let mut x = z.to_vec();
+/// Model coordinates `x` of sampler coordinates `z` under the preconditioner `blocks` and the
+/// scales `scale` of [`Logp`].
+fn to_model(blocks: &[Block], scale: &[f64], z: &[f64]) -> Vec<f64> {
+    let mut x: Vec<f64> = z.iter().zip(scale).map(|(v, s)| v * s).collect();
+    // The blocks do not overlap: each reads its own slice before writing it.
     for b in blocks {
         let (o, d) = (b.offset, b.m.len());
-        let mut v = &b.m + &b.l * DVector::from_column_slice(&z[o..o + d]);
+        let mut v = &b.m + &b.l * DVector::from_column_slice(&x[o..o + d]);
         b.unshear(v.as_mut_slice());
         x[o..o + d].copy_from_slice(v.as_slice());
     }
@@ -294,7 +308,7 @@ impl Logp<'_> {
             let v = b.l.solve_lower_triangular(&r).unwrap_or(r);
             z[o..o + d].copy_from_slice(v.as_slice());
         }
-        z
+        z.iter().zip(&self.scale).map(|(v, s)| v / s).collect()
     }
 }
 
@@ -314,13 +328,16 @@ impl CpuLogpFunc for Logp<'_> {
     }
 
     fn logp(&mut self, position: &[f64], gradient: &mut [f64]) -> Result<f64, NonFinite> {
-        let x = to_model(&self.blocks, position);
+        let x = to_model(&self.blocks, &self.scale, position);
         let l = self.density.log_density(&x, gradient);
         for b in &self.blocks {
             let (o, d) = (b.offset, b.m.len());
             b.pull_back(&x[o..o + d], &mut gradient[o..o + d]);
             let g = b.l.transpose() * DVector::from_column_slice(&gradient[o..o + d]);
             gradient[o..o + d].copy_from_slice(g.as_slice());
+        }
+        for (g, s) in gradient.iter_mut().zip(&self.scale) {
+            *g *= s;
         }
         if l.is_finite() && gradient.iter().all(|g| g.is_finite()) {
             Ok(l)
@@ -474,6 +491,55 @@ fn preconditioner(density: &Density<'_>, guide: &GuideState, model: &ModelConfig
     out
 }
 
+/// The guide's sd of each of `logp`'s coordinates before its scales (the kinodynamic blocks'
+/// preconditioned coordinates are 1 by construction; other coordinates the guide has no sd for
+/// stay 1): each kinematic parameter's, velocity's and centred coordinate's own, and for a
+/// (partially) non-centred coordinate `y = lambda Psi + (q - Psi) / sigma_d^(1 - lambda)`, about
+/// `min(s_q, sigma_d) / sigma_d^(1 - lambda)` (`s_q` the guide's sd of the coordinate, `sigma_d`
+/// the deviation scale at the guide's mean: given `Psi`, `q` varies by at most about `sigma_d`).
+fn guide_sds(logp: &Logp<'_>, guide: &GuideState, model: &ModelConfig) -> Vec<f64> {
+    let density = logp.density.density();
+    let theta = &guide.theta;
+    let mut sd = vec![1.0; density.dim()];
+    let mut deviation = vec![f64::NAN; density.slots().len()];
+    for (i, s) in density.slots().iter().enumerate() {
+        let b = guide.layout.blocks[i][s.joint.index()];
+        for j in 0..s.np {
+            sd[s.xi + j] = theta[b.log_s + j].exp();
+        }
+        if let (Some(o), Some((_, qs))) = (s.q, b.q) {
+            for t in 0..density.evidence().len() {
+                sd[o + t] = theta[qs + t].exp();
+            }
+        }
+        if let (Some(v), Some(vi)) = (s.vel, b.vel) {
+            sd[v] = theta[vi + 1].exp();
+        }
+        if let Some(kd) = b.kd.filter(|kd| s.kd.is_some_and(|(_, d)| d == kd.dim)) {
+            deviation[i] = dynamics::decode::<f64>(s.joint, kd.mean(theta).as_slice(), &density.evidence().effects[i], &model.dynamics).deviation;
+        }
+    }
+    for (i, k, lambda) in logp.density.mapped() {
+        let dev = deviation[i];
+        sd[k] = if dev.is_finite() && dev > 0.0 { sd[k].min(dev) / dev.powf(1.0 - lambda) } else { 1.0 };
+    }
+    sd.iter().map(|&v| if v.is_finite() && v > 0.0 { v } else { 1.0 }).collect()
+}
+
+/// The scales of [`Logp`] that make nuts-rs's first mass matrix the guide's variances: nuts-rs
+/// starts its diagonal from the start's gradient, variance `1 / |g_k|` (its `update_from_grad`),
+/// which in coordinates whose posterior sd is `s_k` is `s_k / |e_k|` (`e_k` the start's
+/// standardised distance from the mode) against the `s_k^2` it should be — a thousand times too
+/// wide for a coordinate in metres with a sd of a millimetre, so that the first step sizes were
+/// tiny and each chain's first 9 draws ran to the depth limit (1,023 steps; `microwave`, about a
+/// third of the warm-up's steps, stop 110). With `z_k = y_k / d_k` and `d_k = s_k^2 |g_k|` the
+/// first variance is `1 / (d_k |g_k|)` in `z`, that is `s_k^2` in `y`. `s_k |g_k|` is clamped to
+/// `[0.1, 10]` (a coordinate at its mode has no gradient). A constant diagonal map: no Jacobian,
+/// and the adapted mass matrix takes over from the first update as before.
+fn start_scales(sd: &[f64], gradient: &[f64]) -> Vec<f64> {
+    sd.iter().zip(gradient).map(|(&s, &g)| s * (s * g.abs()).clamp(0.1, 10.0)).collect()
+}
+
 /// The coordinates the sampler moves: partially non-centred by `centring` (from
 /// [`centring_from_guide`]; [`run_chains`] gives none when `nuts.non_centred` is set, which
 /// overrides `nuts.partial_centring`), else as `nuts.non_centred` says.
@@ -580,12 +646,24 @@ fn run_chains<S: Settings>(settings: S, job: &Job<'_>, diagnose: &Diagnose<'_>) 
                     let density = Density::new(ev, model, structure.clone());
                     let mut rng = ChaCha8Rng::seed_from_u64(seed.wrapping_add(1000 * c as u64));
                     let x0 = start_from_guide(&density, guide, &mut rng);
-                    let logp = Logp { blocks: blocks.to_vec(), density: coordinates(density, centring, cfg.non_centred) };
+                    let mut logp = Logp { blocks: blocks.to_vec(), density: coordinates(density, centring, cfg.non_centred), scale: Vec::new() };
+                    logp.scale = vec![1.0; logp.density.density().dim()];
                     if c == 0 && centring.is_some() {
                         let (low, all) = logp.density.centring_summary();
-                        tracing::debug!("NUTS: {low} of {all} window coordinates mostly non-centred (lambda < 0.5)");
+                        tracing::debug!("NUTS: {low} of {all} window and rest coordinates mostly non-centred (lambda < 0.5)");
                     }
-                    let z0 = logp.to_sampler(&logp.density.from_model(&x0));
+                    let mut z0 = logp.to_sampler(&logp.density.from_model(&x0));
+                    if cfg.start_scales {
+                        let sd = guide_sds(&logp, guide, model);
+                        let mut g0 = vec![0.0; z0.len()];
+                        // Unscaled where the density is not finite at the start (the chain's own
+                        // start check reports it).
+                        if logp.logp(&z0, &mut g0).is_ok() {
+                            logp.scale = start_scales(&sd, &g0);
+                            z0 = z0.iter().zip(&logp.scale).map(|(v, s)| v / s).collect();
+                        }
+                    }
+                    let scale = logp.scale.clone();
                     // The chain owns `logp`; draws are mapped back to the model by a view of its own.
                     let map = coordinates(Density::new(ev, model, structure.clone()), centring, cfg.non_centred);
                     let math = CpuMath::new(logp);
@@ -632,7 +710,7 @@ fn run_chains<S: Settings>(settings: S, job: &Job<'_>, diagnose: &Diagnose<'_>) 
                                         divergences += info.diverging as u64;
                                         all_steps += info.num_steps;
                                         step_size = info.step_size;
-                                        out.push(map.to_model(&to_model(blocks, &draw)));
+                                        out.push(map.to_model(&to_model(blocks, &scale, &draw)));
                                     }
                                 }
                                 Err(e) => {
@@ -951,6 +1029,25 @@ mod tests {
 
     /// The sheared preconditioner of a kinodynamic block round-trips, and the gradient it pulls
     /// back to the sampler's coordinates is that of the composed function (central differences).
+    /// On a Gaussian coordinate of sd `s`, the start scales make nuts-rs's first variance
+    /// (`1 / |g|` in the sampler's coordinate) the coordinate's variance `s^2`, wherever the
+    /// start lies within the clamp, and keep it finite and positive where the gradient vanishes.
+    #[test]
+    fn start_scales_make_the_first_mass_matrix_the_guide_variance() {
+        let sd = [1e-3, 0.5, 2.0, 1e-4];
+        // Gradients of N(0, s^2) at 0.3, -1.7, 2.5 sds and at the mode.
+        let e = [0.3, -1.7, 2.5, 0.0];
+        let g: Vec<f64> = sd.iter().zip(&e).map(|(s, e)| -e / s).collect();
+        let d = start_scales(&sd, &g);
+        for k in 0..3 {
+            // Sampler coordinate `z = y / d`: gradient `d g`, first variance `1 / |d g|` in `z`,
+            // `d^2 / |d g|` in `y`.
+            let var_y = d[k] * d[k] / (d[k] * g[k]).abs();
+            assert!((var_y / (sd[k] * sd[k]) - 1.0).abs() < 1e-12, "coordinate {k}: {var_y} against {}", sd[k] * sd[k]);
+        }
+        assert!(d[3].is_finite() && d[3] > 0.0);
+    }
+
     #[test]
     fn sheared_block_round_trips_and_pulls_gradients_back() {
         let l = DMatrix::from_row_slice(4, 4, &[0.3, 0.0, 0.0, 0.0, 0.1, 0.5, 0.0, 0.0, 0.0, 0.2, 0.4, 0.0, 0.05, -0.1, 0.0, 0.2]);
@@ -963,21 +1060,26 @@ mod tests {
             (v, g)
         };
         let blocks = vec![b];
-        let value = |z: &[f64]| f(&to_model(&blocks, z)).0;
+        // The start scales of `Logp` on top of the blocks.
+        let scale = [2.0, 0.5, 1.0, 3.0, 0.25];
+        let value = |z: &[f64]| f(&to_model(&blocks, &scale, z)).0;
         let z = [0.3, -0.4, 1.1, 0.2, -0.7];
-        let x = to_model(&blocks, &z);
+        let x = to_model(&blocks, &scale, &z);
         // Round trip through `to_sampler`'s arithmetic.
         let mut v = DVector::from_column_slice(&x[1..5]);
         blocks[0].shear(v.as_mut_slice());
         let back = blocks[0].l.solve_lower_triangular(&(v - &blocks[0].m)).unwrap();
         for k in 0..4 {
-            assert!((back[k] - z[k + 1]).abs() < 1e-12, "round trip: {back} vs {z:?}");
+            assert!((back[k] / scale[k + 1] - z[k + 1]).abs() < 1e-12, "round trip: {back} vs {z:?}");
         }
         // The pulled-back gradient, as `Logp::logp` does it.
         let (_, mut g) = f(&x);
         blocks[0].pull_back(&x[1..5], &mut g[1..5]);
         let gz = blocks[0].l.transpose() * DVector::from_column_slice(&g[1..5]);
         g[1..5].copy_from_slice(gz.as_slice());
+        for (g, s) in g.iter_mut().zip(&scale) {
+            *g *= s;
+        }
         for k in 0..5 {
             let h = 1e-6;
             let (mut a, mut c) = (z, z);

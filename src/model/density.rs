@@ -1119,8 +1119,9 @@ pub fn window_starts(ev: &Evidence) -> Vec<usize> {
 /// where every movable part's coordinate at a window frame after the window's first is
 /// `q_t = Psi_t + sigma_d u_t`, `Psi` the simulated trajectory of that window
 /// ([`dynamics::window_psi`]) and `sigma_d` the part's deviation scale; the sampler moves
-/// `u_t` in place of `q_t` (all other latents are unchanged, among them every window's first
-/// coordinate, from which `Psi` starts).
+/// `u_t` in place of `q_t`, and at a rest frame `b` tied to the window's first or last frame `a`,
+/// `q_b = q_a + sigma_d u_b` (since stop 111; [`NonCentred::partial`]). All other latents are
+/// unchanged, among them every window's first coordinate, from which `Psi` starts.
 ///
 /// Why: in centred coordinates the coordinates are tied to the simulation as tightly as the
 /// deviation scale (on the drawer bag its posterior is 0.3 mm, the observation noise's size), so
@@ -1147,6 +1148,10 @@ pub struct NonCentred<'a> {
     /// Per part: `(window, frame index in the window, grid frame, lambda)` of each (partially)
     /// non-centred coordinate; `lambda` in `[0, 1)` is its centring ([`NonCentred::partial`]).
     frames: Vec<Vec<(usize, usize, usize, f64)>>,
+    /// Per part: `(anchor grid frame a, rest grid frame b, lambda)` of each (partially)
+    /// non-centred rest coordinate, `q_b = q_a + sigma_d^(1 - lambda) (y_b - lambda q_a)`
+    /// ([`NonCentred::partial`]).
+    rests: Vec<Vec<(usize, usize, f64)>>,
 }
 
 /// A window coordinate `q_t = Psi_t + sigma_d^(1 - lambda) (y_t - lambda Psi_t)` from the
@@ -1204,38 +1209,78 @@ impl<'a> NonCentred<'a> {
     /// `tau^2`, the posterior is uncorrelated with `sigma_d` at `lambda = sigma_d^2 / (sigma_d^2 +
     /// tau^2)`, which is `1 - s^2 / sigma_d^2` with `s` the coordinate's conditional posterior sd —
     /// what a mean-field guide fits (`inference::nuts` takes it from SVI's).
+    ///
+    /// The rest frames of the physics prior (after a window, tied to its last coordinate; before
+    /// it, to its first: [`WindowEvidence::rest`], [`WindowEvidence::rest_before`]) are
+    /// non-centred the same way about their anchor `q_a` in place of `Psi_t`:
+    /// `q_b = q_a + sigma_d^(1 - lambda) (y_b - lambda q_a)`. Why: their rest term ties `q_b` to
+    /// `q_a` by the deviation scale, the same funnel as a window's coordinates; left centred, it
+    /// was what bounded the deviation scale's mixing (`microwave`, stop 111: the deviation's bulk
+    /// ESS the least of all, 0.05-0.07 per draw). A frame that starts or lies in a window, and a
+    /// rest frame already taken, keeps its own coordinate (the map must stay triangular).
     pub fn partial(density: Density<'a>, centring: impl Fn(usize, usize) -> Option<f64>) -> Self {
         let ev = density.evidence();
         let starts: Vec<usize> = ev.windows.iter().map(|w| w.frames[0]).collect();
-        let frames = density
-            .slots()
-            .iter()
-            .enumerate()
-            .map(|(i, s)| {
-                let mut out: Vec<(usize, usize, usize, f64)> = Vec::new();
-                if s.kd.is_some() && s.q.is_some() {
-                    for (w, win) in ev.windows.iter().enumerate() {
-                        for (k, &t) in win.frames.iter().enumerate().skip(1) {
-                            let lambda = centring(i, t).unwrap_or(0.0);
-                            let lambda = if lambda.is_finite() { lambda.clamp(0.0, 1.0) } else { 0.0 };
-                            // A fully centred coordinate is the model's own: left out of the map.
-                            if lambda < 1.0 && !starts.contains(&t) && !out.iter().any(|&(_, _, u, _)| u == t) {
-                                out.push((w, k, t, lambda));
-                            }
+        let in_windows: Vec<usize> = ev.windows.iter().flat_map(|w| w.frames.iter().copied()).collect();
+        let lambda_at = |i: usize, t: usize| {
+            let lambda = centring(i, t).unwrap_or(0.0);
+            if lambda.is_finite() { lambda.clamp(0.0, 1.0) } else { 0.0 }
+        };
+        let mut frames = Vec::with_capacity(density.slots().len());
+        let mut rests = Vec::with_capacity(density.slots().len());
+        for (i, s) in density.slots().iter().enumerate() {
+            let mut out: Vec<(usize, usize, usize, f64)> = Vec::new();
+            let mut rest: Vec<(usize, usize, f64)> = Vec::new();
+            if s.kd.is_some() && s.q.is_some() {
+                for (w, win) in ev.windows.iter().enumerate() {
+                    for (k, &t) in win.frames.iter().enumerate().skip(1) {
+                        let lambda = lambda_at(i, t);
+                        // A fully centred coordinate is the model's own: left out of the map.
+                        if lambda < 1.0 && !starts.contains(&t) && !out.iter().any(|&(_, _, u, _)| u == t) {
+                            out.push((w, k, t, lambda));
                         }
                     }
                 }
-                out
-            })
-            .collect();
-        NonCentred { density, frames }
+                for win in &ev.windows {
+                    let (first, last) = (win.frames[0], win.frames[win.frames.len() - 1]);
+                    let pairs = win.rest_before.iter().map(|&b| (first, b)).chain(win.rest.iter().map(|&b| (last, b)));
+                    for (a, b) in pairs {
+                        let lambda = lambda_at(i, b);
+                        if lambda < 1.0 && a != b && !in_windows.contains(&b) && !rest.iter().any(|&(_, u, _)| u == b) {
+                            rest.push((a, b, lambda));
+                        }
+                    }
+                }
+            }
+            frames.push(out);
+            rests.push(rest);
+        }
+        NonCentred { density, frames, rests }
     }
 
-    /// How many of the (partially) non-centred coordinates have a centring `lambda` below 0.5, and
-    /// how many there are (for the sampler's debug line).
+    /// How many of the (partially) non-centred coordinates, window and rest frames, have a
+    /// centring `lambda` below 0.5, and how many there are (for the sampler's debug line).
     pub fn centring_summary(&self) -> (usize, usize) {
-        let all = self.frames.iter().flatten();
-        (all.clone().filter(|f| f.3 < 0.5).count(), all.count())
+        let all = self.frames.iter().flatten().map(|f| f.3).chain(self.rests.iter().flatten().map(|r| r.2));
+        (all.clone().filter(|&l| l < 0.5).count(), all.count())
+    }
+
+    /// Every (partially) non-centred coordinate, window and rest frames: `(part, index into the
+    /// coordinates, lambda)`.
+    pub fn mapped(&self) -> Vec<(usize, usize, f64)> {
+        let slots = &self.density.slots;
+        let mut out = Vec::new();
+        for (i, s) in slots.iter().enumerate() {
+            let Some(o) = s.q else { continue };
+            out.extend(self.frames[i].iter().map(|&(_, _, t, lambda)| (i, o + t, lambda)));
+            out.extend(self.rests[i].iter().map(|&(_, b, lambda)| (i, o + b, lambda)));
+        }
+        out
+    }
+
+    /// Whether part `i` has (partially) non-centred coordinates.
+    fn has_map(&self, i: usize) -> bool {
+        !self.frames[i].is_empty() || !self.rests[i].is_empty()
     }
 
     pub fn density(&self) -> &Density<'a> {
@@ -1244,7 +1289,7 @@ impl<'a> NonCentred<'a> {
 
     /// Whether any coordinate is non-centred.
     fn any(&self) -> bool {
-        self.frames.iter().any(|f| !f.is_empty())
+        (0..self.frames.len()).any(|i| self.has_map(i))
     }
 
     /// `Psi` of `parts` at `y` (non-centred entries are read as coordinates; only the windows'
@@ -1267,7 +1312,7 @@ impl<'a> NonCentred<'a> {
         let transforms = part_transforms(parent, &values, frames);
         (0..n)
             .map(|i| {
-                if !parts.contains(&i) || self.frames[i].is_empty() {
+                if !parts.contains(&i) || !self.has_map(i) {
                     return None;
                 }
                 let xi = values[i].kd?;
@@ -1299,7 +1344,9 @@ impl<'a> NonCentred<'a> {
         }
         let all: Vec<usize> = (0..self.frames.len()).collect();
         let sim = self.simulate(y, &self.all_params(y), &all, true);
-        self.apply(y, &sim, model_coordinate)
+        let mut x = self.apply(y, &sim, model_coordinate);
+        self.rests_to_model(y, &sim, &mut x);
+        x
     }
 
     /// Non-centred coordinates of model coordinates `x`.
@@ -1309,7 +1356,26 @@ impl<'a> NonCentred<'a> {
         }
         let all: Vec<usize> = (0..self.frames.len()).collect();
         let sim = self.simulate(x, &self.all_params(x), &all, true);
-        self.apply(x, &sim, |psi, dev, lambda, q| lambda * psi + (q - psi) / dev.powf(1.0 - lambda))
+        let mut y = self.apply(x, &sim, |psi, dev, lambda, q| lambda * psi + (q - psi) / dev.powf(1.0 - lambda));
+        for (i, s) in sim.iter().enumerate() {
+            let (Some(s), Some(o)) = (s, self.density.slots[i].q) else { continue };
+            for &(a, b, lambda) in &self.rests[i] {
+                let qa = x[o + a];
+                y[o + b] = lambda * qa + (x[o + b] - qa) / s.deviation.powf(1.0 - lambda);
+            }
+        }
+        y
+    }
+
+    /// The rest coordinates of `x` (window coordinates already mapped) from `y`: `q_b = q_a +
+    /// sigma_d^(1 - lambda) (y_b - lambda q_a)`, the anchor `q_a` in model coordinates.
+    fn rests_to_model(&self, y: &[f64], sim: &[Option<Simulated>], x: &mut [f64]) {
+        for (i, s) in sim.iter().enumerate() {
+            let (Some(s), Some(o)) = (s, self.density.slots[i].q) else { continue };
+            for &(a, b, lambda) in &self.rests[i] {
+                x[o + b] = model_coordinate(x[o + a], s.deviation, lambda, y[o + b]);
+            }
+        }
     }
 
     /// `v` with every (partially) non-centred coordinate replaced by `f(Psi_t, sigma_d, lambda, v_t)`.
@@ -1335,7 +1401,8 @@ impl<'a> NonCentred<'a> {
         let all: Vec<usize> = (0..n).collect();
         let params = self.all_params(y);
         let sim = self.simulate(y, &params, &all, true);
-        let x = self.apply(y, &sim, model_coordinate);
+        let mut x = self.apply(y, &sim, model_coordinate);
+        self.rests_to_model(y, &sim, &mut x);
         let mut g = vec![0.0; d.dim];
         // The density's physics prior takes the map's simulation (the same trajectories: they
         // start from the windows' first coordinates, which `x` and `y` share) instead of running
@@ -1358,6 +1425,18 @@ impl<'a> NonCentred<'a> {
             // q_t = Psi_t + a (y_t - lambda Psi_t), a = sigma_d^(1 - lambda): dq/dy = a,
             // dq/dPsi = 1 - lambda a, dq/d xi_d = (1 - lambda) log_sd a (y_t - lambda Psi_t).
             let mut jacobian = 0.0;
+            // Rest frames first: their anchor's model gradient gains `dq_b/dq_a = 1 - lambda a`,
+            // which the anchor's own map (a window frame) or `grad` (a centred anchor) carries on.
+            for &(a_t, b, lambda) in &self.rests[i] {
+                let (gb, qa) = (g[o + b], x[o + a_t]);
+                let a = s.deviation.powf(1.0 - lambda);
+                let ga = gb * (1.0 - lambda * a);
+                g[o + a_t] += ga;
+                grad[o + a_t] += ga;
+                grad[o + b] = gb * a;
+                grad[k + 3] += gb * (y[o + b] - lambda * qa) * (1.0 - lambda) * log_sd * a;
+                jacobian += 1.0 - lambda;
+            }
             for &(w, kk, t, lambda) in &self.frames[i] {
                 let (gt, u) = (g[o + t], y[o + t]);
                 // Directions of `tr`: kinodynamics, then the window's first coordinate, then `dims`.
