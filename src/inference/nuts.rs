@@ -501,7 +501,6 @@ fn guide_sds(logp: &Logp<'_>, guide: &GuideState, model: &ModelConfig) -> Vec<f6
     let density = logp.density.density();
     let theta = &guide.theta;
     let mut sd = vec![1.0; density.dim()];
-    let mut deviation = vec![f64::NAN; density.slots().len()];
     for (i, s) in density.slots().iter().enumerate() {
         let b = guide.layout.blocks[i][s.joint.index()];
         for j in 0..s.np {
@@ -515,10 +514,8 @@ fn guide_sds(logp: &Logp<'_>, guide: &GuideState, model: &ModelConfig) -> Vec<f6
         if let (Some(v), Some(vi)) = (s.vel, b.vel) {
             sd[v] = theta[vi + 1].exp();
         }
-        if let Some(kd) = b.kd.filter(|kd| s.kd.is_some_and(|(_, d)| d == kd.dim)) {
-            deviation[i] = dynamics::decode::<f64>(s.joint, kd.mean(theta).as_slice(), &density.evidence().effects[i], &model.dynamics).deviation;
-        }
     }
+    let deviation: Vec<f64> = (0..density.slots().len()).map(|i| guide_deviation(density, guide, model, i).unwrap_or(f64::NAN)).collect();
     for (i, k, lambda) in logp.density.mapped() {
         let dev = deviation[i];
         sd[k] = if dev.is_finite() && dev > 0.0 { sd[k].min(dev) / dev.powf(1.0 - lambda) } else { 1.0 };
@@ -563,15 +560,19 @@ fn centring_from_guide(density: &Density<'_>, guide: &GuideState, model: &ModelC
         .enumerate()
         .map(|(i, s)| {
             let b = guide.layout.blocks[i][s.joint.index()];
-            let (Some((_, d)), Some((_, qs)), Some(kd)) = (s.kd, b.q, b.kd) else { return Vec::new() };
-            if kd.dim != d {
-                return Vec::new();
-            }
-            let mean = kd.mean(theta);
-            let sd = dynamics::decode::<f64>(s.joint, mean.as_slice(), &ev.effects[i], &model.dynamics).deviation;
+            let (Some((_, qs)), Some(sd)) = (b.q, guide_deviation(density, guide, model, i)) else { return Vec::new() };
             (0..ev.len()).map(|t| (1.0 - (theta[qs + t].exp() / sd).powi(2)).clamp(0.0, 1.0)).collect()
         })
         .collect()
+}
+
+/// Part `i`'s deviation scale `sigma_d` \[m\] at the guide's kinodynamic mean; none when the
+/// part has no kinodynamic block or the guide's is of another dimension.
+fn guide_deviation(density: &Density<'_>, guide: &GuideState, model: &ModelConfig, i: usize) -> Option<f64> {
+    let s = &density.slots()[i];
+    let (_, d) = s.kd?;
+    let kd = guide.layout.blocks[i][s.joint.index()].kd.filter(|kd| kd.dim == d)?;
+    Some(dynamics::decode::<f64>(s.joint, kd.mean(&guide.theta).as_slice(), &density.evidence().effects[i], &model.dynamics).deviation)
 }
 
 /// What one chain sends back after a round: its new sampling draws (model coordinates) and the
@@ -646,8 +647,8 @@ fn run_chains<S: Settings>(settings: S, job: &Job<'_>, diagnose: &Diagnose<'_>) 
                     let density = Density::new(ev, model, structure.clone());
                     let mut rng = ChaCha8Rng::seed_from_u64(seed.wrapping_add(1000 * c as u64));
                     let x0 = start_from_guide(&density, guide, &mut rng);
-                    let mut logp = Logp { blocks: blocks.to_vec(), density: coordinates(density, centring, cfg.non_centred), scale: Vec::new() };
-                    logp.scale = vec![1.0; logp.density.density().dim()];
+                    let scale = vec![1.0; density.dim()];
+                    let mut logp = Logp { blocks: blocks.to_vec(), density: coordinates(density, centring, cfg.non_centred), scale };
                     if c == 0 && centring.is_some() {
                         let (low, all) = logp.density.centring_summary();
                         tracing::debug!("NUTS: {low} of {all} window and rest coordinates mostly non-centred (lambda < 0.5)");
