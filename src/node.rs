@@ -308,9 +308,10 @@ fn start_nuts(cfg: &Config, job: Arc<Job>, fitted: crate::inference::svi::Fitted
                 }
                 if runs.latest.load(Ordering::SeqCst) == seq {
                     tracing::info!(
-                        "NUTS posterior: R-hat {:.3}, bulk ESS {:.0}, {} divergent, {:.1} s",
+                        "NUTS posterior: R-hat {:.3}, bulk ESS {:.0}, tail ESS {:.0}, {} divergent, {:.1} s",
                         report.r_hat_max,
                         report.ess_bulk_min,
+                        report.ess_tail_min,
                         report.divergences,
                         report.runtime_s
                     );

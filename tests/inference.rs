@@ -373,7 +373,7 @@ fn nuts_extends_chains_until_the_diagnostics_hold() {
     let (_, report) = nuts::sample(&ev, &cfg.model, &fitted, &NutsConfig { extend_draws: 80, ..never }).expect("NUTS runs");
     assert_eq!(report.draws, 260, "{report:?}");
     assert_eq!(report.total_draws, 520, "{report:?}");
-    let easy = NutsConfig { max_draws: 300, r_hat_max: 10.0, ess_bulk_min: 1.0, divergence_share_max: 1.0, ..base };
+    let easy = NutsConfig { max_draws: 300, r_hat_max: 10.0, ess_bulk_min: 1.0, ess_tail_min: 1.0, divergence_share_max: 1.0, ..base };
     let (post, report) = nuts::sample(&ev, &cfg.model, &fitted, &easy).expect("NUTS runs");
     assert_eq!(report.draws, 100, "{report:?}");
     assert_eq!(report.total_draws, 200, "{report:?}");

@@ -165,6 +165,7 @@ pub struct ObjectRow {
 pub struct SamplerRow {
     pub r_hat_max: f64,
     pub ess_bulk_min: f64,
+    pub ess_tail_min: f64,
     pub divergences: u64,
     /// Sampling draws, all chains and structures (the sampler's `total_draws`: each structure
     /// counted with the rounds it took).
@@ -313,6 +314,7 @@ fn score(o: &CorpusObject, layout: Layout, cfg: &Config, baselines: bool) -> Res
     let sampler = run.sampler.as_ref().map(|r| SamplerRow {
         r_hat_max: r.r_hat_max,
         ess_bulk_min: r.ess_bulk_min,
+        ess_tail_min: r.ess_tail_min,
         divergences: r.divergences,
         draws: r.total_draws,
         runtime_s: r.runtime_s,

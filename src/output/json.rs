@@ -113,6 +113,9 @@ pub struct SamplerJson {
     pub total_draws: u64,
     pub r_hat_max: Option<f64>,
     pub ess_bulk_min: Option<f64>,
+    /// Beyond the contract: the least tail ESS (of the 5% and 95% quantiles) over the reported
+    /// parameters.
+    pub ess_tail_min: Option<f64>,
     pub divergences: u64,
     pub runtime_s: f64,
     pub structure_mass: f64,
@@ -144,6 +147,7 @@ fn sampler_json(run: &Run, s: &SamplerReport) -> SamplerJson {
         total_draws: s.total_draws,
         r_hat_max: finite(s.r_hat_max),
         ess_bulk_min: finite(s.ess_bulk_min),
+        ess_tail_min: finite(s.ess_tail_min),
         divergences: s.divergences,
         runtime_s: s.runtime_s,
         structure_mass: s.structure_mass,

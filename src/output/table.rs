@@ -25,12 +25,13 @@ pub fn render(run: &Run) -> String {
             if let Some(n) = &run.sampler {
                 let _ = writeln!(
                     s,
-                    "  BOM-NUTS: {} structure(s), {} chains x {} draws, R-hat max {:.3}, bulk ESS min {:.0}, {} divergent, {:.2} s",
+                    "  BOM-NUTS: {} structure(s), {} chains x {} draws, R-hat max {:.3}, bulk ESS min {:.0}, tail ESS min {:.0}, {} divergent, {:.2} s",
                     n.structures.len(),
                     n.chains,
                     n.draws,
                     n.r_hat_max,
                     n.ess_bulk_min,
+                    n.ess_tail_min,
                     n.divergences,
                     n.runtime_s
                 );
