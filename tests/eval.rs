@@ -214,6 +214,7 @@ fn a_corpus_gets_table_1_with_svi_and_nuts_side_by_side() {
     assert!(rows[0]["runtime_s_median"].as_f64().unwrap() < rows[1]["runtime_s_median"].as_f64().unwrap(), "NUTS runs after SVI");
     for o in r["objects"].as_array().unwrap() {
         assert!(o["svi"]["per_part"].is_array() && o["sampler"]["r_hat_max"].is_f64(), "{o}");
+        assert!(o["sampler"]["ess_tail_min"].as_f64().is_some_and(|e| e > 0.0), "the tail ESS reported: {o}");
     }
     let c = &r["svi_vs_nuts"];
     assert_eq!(c["parameters"], 2, "one axis cone per movable part: {c}");

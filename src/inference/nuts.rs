@@ -74,8 +74,8 @@ pub struct NutsConfig {
     /// Sampling draws per chain before the first diagnosis: 500 since stop 112 (1,000 before). A
     /// compute setting, not a model one: a run whose R-hat, bulk ESS or tail ESS misses its limit
     /// goes on by `extend_draws` (below), so the draws follow what the diagnostics need. Chosen
-    /// on the `tune` split's dynamic-mode objects (bulk ESS 0.14-0.4 a draw there, so 2,000
-    /// draws over 4 chains reach 400 on most) and reported on held-out ones (README, stop 112).
+    /// on the `tune` split's dynamic-mode objects (at stop 111 bulk ESS 0.23-0.40 a draw there, so
+    /// 2,000 draws over 4 chains reach 400 on most) and reported on held-out ones (README, stop 112).
     pub draws: u64,
     /// Most sampling draws per chain: while a structure's R-hat, bulk or tail ESS misses its limit, its
     /// chains go on by `extend_draws` more (the warm-up's adaptation kept), up to this many (at
@@ -128,8 +128,8 @@ pub struct NutsConfig {
     pub max_structures: usize,
     /// Acceptance limits reported as warnings: largest R-hat, least bulk ESS, least tail ESS,
     /// largest share of divergent draws. The tail ESS (of the 5% and 95% quantiles, Vehtari et al.
-    /// 2021 §4.3) since stop 112: the reported 90% intervals are those quantiles, and the paper's
-    /// advice is both ESS above 100 per chain.
+    /// 2021 §4.3) since stop 112: the reported 90% intervals are those quantiles, and Vehtari et
+    /// al. advise both ESS above 100 per chain.
     pub r_hat_max: f64,
     pub ess_bulk_min: f64,
     pub ess_tail_min: f64,
@@ -593,7 +593,7 @@ struct Round {
 }
 
 /// The diagnostics of a structure's draws so far, `draws[chain][k]` (model coordinates): largest
-/// R-hat and least bulk ESS over the reported scalars.
+/// R-hat and least bulk and tail ESS over the reported scalars.
 type Diagnose<'a> = dyn Fn(&[Vec<Vec<f64>>]) -> Convergence + 'a;
 
 /// One structure's sampling job: the evidence and model it is conditioned on, the structure, SVI's
