@@ -65,7 +65,7 @@ pub struct NutsConfig {
     pub enabled: bool,
     /// Chains per structure (run in parallel, one thread each).
     pub chains: usize,
-    /// Warm-up (tuning) and sampling draws per chain. Warm-up 800 since stop 111 (nuts-rs's own
+    /// Warm-up (tuning) draws per chain: 800 since stop 111 (nuts-rs's own
     /// default for its low-rank sampler; 1,000 before, Stan's and PyMC's): a compute setting, run
     /// on the `tune` split's dynamic-mode objects and reported on held-out ones (README, stop
     /// 111); at stop 110, before the rest frames were non-centred, 500 let a `microwave` chain
@@ -858,10 +858,9 @@ impl Convergence {
 /// scalar's draws, `chains[c][k]` (Vehtari et al. 2021, §4).
 pub fn rank_diagnostics(chains: &[Vec<f64>]) -> Convergence {
     let z = rank_normalise(chains);
-    let mut sorted: Vec<f64> = chains.iter().flatten().copied().collect();
-    sorted.sort_by(|a, b| a.total_cmp(b));
-    let quantile = |p: f64| sorted[((sorted.len() - 1) as f64 * p).round() as usize];
-    let med = sorted[sorted.len() / 2];
+    // The pooled median, and the 5% and 95% quantiles as the reported intervals take them.
+    let pooled = estimate_from_draws(&chains.concat());
+    let med = pooled.median;
     let folded: Vec<Vec<f64>> = chains.iter().map(|c| c.iter().map(|x| (x - med).abs()).collect()).collect();
     let zf = rank_normalise(&folded);
     let rhat = |c: &Vec<Vec<f64>>| mcmc::rhat::split_potential_scale_reduction_factor(c).unwrap_or(f64::NAN);
@@ -870,7 +869,7 @@ pub fn rank_diagnostics(chains: &[Vec<f64>]) -> Convergence {
     let ess_bulk = ess(&z);
     // Tail: the indicator of lying at or below the pooled 5% (95%) quantile, its split ESS.
     let below = |q: f64| chains.iter().map(|c| c.iter().map(|&x| if x <= q { 1.0 } else { 0.0 }).collect()).collect::<Vec<Vec<f64>>>();
-    let ess_tail = ess(&below(quantile(0.05))).min(ess(&below(quantile(0.95))));
+    let ess_tail = ess(&below(pooled.q05)).min(ess(&below(pooled.q95)));
     Convergence { r_hat: r, ess_bulk, ess_tail }
 }
 

@@ -1160,6 +1160,11 @@ fn model_coordinate(psi: f64, dev: f64, lambda: f64, y: f64) -> f64 {
     psi + dev.powf(1.0 - lambda) * (y - lambda * psi)
 }
 
+/// The inverse of [`model_coordinate`]: the sampler's `y_t` of a model coordinate `q_t`.
+fn sampler_coordinate(psi: f64, dev: f64, lambda: f64, q: f64) -> f64 {
+    lambda * psi + (q - psi) / dev.powf(1.0 - lambda)
+}
+
 /// A part's simulated trajectories per window and its deviation scale at some coordinates.
 struct Simulated {
     trajectories: Trajectories,
@@ -1356,12 +1361,11 @@ impl<'a> NonCentred<'a> {
         }
         let all: Vec<usize> = (0..self.frames.len()).collect();
         let sim = self.simulate(x, &self.all_params(x), &all, true);
-        let mut y = self.apply(x, &sim, |psi, dev, lambda, q| lambda * psi + (q - psi) / dev.powf(1.0 - lambda));
+        let mut y = self.apply(x, &sim, sampler_coordinate);
         for (i, s) in sim.iter().enumerate() {
             let (Some(s), Some(o)) = (s, self.density.slots[i].q) else { continue };
             for &(a, b, lambda) in &self.rests[i] {
-                let qa = x[o + a];
-                y[o + b] = lambda * qa + (x[o + b] - qa) / s.deviation.powf(1.0 - lambda);
+                y[o + b] = sampler_coordinate(x[o + a], s.deviation, lambda, x[o + b]);
             }
         }
         y
