@@ -153,6 +153,18 @@ fn nuts(c: &mut Criterion) {
             g.bench_function(format!("log density and gradient, {bag} (2 parts, 4 windows), {name}"), |b| b.iter(|| nc.log_density(black_box(&y), &mut grad)));
         }
     }
+    // A nested chain: the door on the slider (4 parts), where the slider's kinematic parameters
+    // reach the door's physics by forward differences (`density::cross_physics_differences`).
+    let run = bom::pipeline::replay(&[PathBuf::from("bags/mujoco/slide_microwave.mcap")], &cfg).expect("bundled bag");
+    let ev = bom::pipeline::final_evidence(&run, &cfg);
+    let fitted = svi::fit(&ev, &cfg.model, &cfg.inference, None).expect("a fit");
+    let joints = &fitted.posterior.joints;
+    let structure = Structure { parent: joints.iter().map(|j| j.parent_index).collect(), types: joints.iter().map(|j| j.map_type).collect() };
+    let nc = NonCentred::new(Density::new(&ev, &cfg.model, structure), true);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+    let y = nc.from_model(&nuts::start_from_guide(nc.density(), &fitted.guide, &mut rng));
+    let mut grad = vec![0.0; y.len()];
+    g.bench_function("log density and gradient, slide_microwave (4 parts, door on slider), non-centred", |b| b.iter(|| nc.log_density(black_box(&y), &mut grad)));
     let bag: PathBuf = "bags/sturm/left_door_001.mcap".into();
     let run = bom::pipeline::replay(std::slice::from_ref(&bag), &cfg).expect("bundled bag");
     let ev = bom::pipeline::final_evidence(&run, &cfg);

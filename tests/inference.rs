@@ -338,6 +338,7 @@ fn nuts_samples_the_model_svi_fitted() {
     assert_eq!(report.structures[0].0, map_structure(&fitted));
     assert_eq!(report.structures.len(), 2, "{report:?}");
     assert_eq!(report.same_density_as, vec![None, Some(0)], "{report:?}");
+    assert_eq!(report.sampled, vec![true, false], "{report:?}");
     assert_eq!(report.total_draws, 200, "one structure's draws: {report:?}");
     assert_eq!(report.chains, 2);
     assert!(report.r_hat_max.is_finite() && report.ess_bulk_min.is_finite(), "{report:?}");

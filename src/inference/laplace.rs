@@ -160,6 +160,33 @@ pub fn inflated(cov: DMatrix<f64>, c: f64) -> DMatrix<f64> {
         .unwrap_or(cov)
 }
 
+/// Draws `draws[k]` (each a vector of standardised parameters with prior `N(0, I)`) moved so that
+/// their covariance is [`inflated`]`(cov, c)`, `cov` their own: `x' = m + L' L^-1 (x - m)`, `m`
+/// their mean and `L`, `L'` the Cholesky factors of the two covariances (a linear map, so the
+/// moved draws' covariance is the inflated one exactly and a Gaussian stays Gaussian). The
+/// draws as they are when `c <= 1`, with fewer draws than twice the dimension, or where either
+/// covariance has no Cholesky factor.
+///
+/// Why: BOM-NUTS samples the model's posterior, whose likelihood counts correlated deviations as
+/// independent frames, as SVI's Laplace fit does; its reported intervals allow for that by the
+/// same factor SVI's do (`inference::nuts`'s module docs).
+pub fn inflated_draws(draws: &[Vec<f64>], c: f64) -> Vec<Vec<f64>> {
+    let Some(d) = draws.first().map(Vec::len) else { return Vec::new() };
+    if c <= 1.0 || d == 0 || draws.len() < 2 * d || draws.iter().any(|x| x.len() != d) {
+        return draws.to_vec();
+    }
+    let n = draws.len() as f64;
+    let m = draws.iter().fold(DVector::zeros(d), |acc, x| acc + DVector::from_column_slice(x)) / n;
+    let cov = draws.iter().fold(DMatrix::zeros(d, d), |acc, x| {
+        let e = DVector::from_column_slice(x) - &m;
+        acc + &e * e.transpose()
+    }) / (n - 1.0);
+    let (Some(l), Some(l2)) = (cov.clone().cholesky(), inflated(cov, c).cholesky()) else { return draws.to_vec() };
+    let Some(l_inv) = l.l().try_inverse() else { return draws.to_vec() };
+    let a = l2.l() * l_inv;
+    draws.iter().map(|x| (&m + &a * (DVector::from_column_slice(x) - &m)).as_slice().to_vec()).collect()
+}
+
 /// The variance inflation factor that the windows' disagreement calls for: the least `c >= 1`
 /// for which the reported covariance `(H / c + I)^-1` ([`inflated`]) gives damping and friction
 /// (standardised coordinates 0 and 1) at least the variances of the cluster-robust sandwich
@@ -365,6 +392,42 @@ pub fn mean_field_gap(guide_precision: &[f64], prior_diag: &[f64], edges: &[(usi
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Moved draws have the inflated covariance exactly, keep their mean, and stay put at `c = 1`.
+    #[test]
+    fn inflated_draws_have_the_inflated_covariance() {
+        // Correlated draws on a grid (no RNG needed): x = B u, u over a 3-D grid.
+        let b = DMatrix::<f64>::from_row_slice(3, 3, &[0.2, 0.0, 0.0, 0.1, 0.3, 0.0, -0.05, 0.02, 0.1]);
+        let mut draws = Vec::new();
+        for i in 0..7 {
+            for j in 0..7 {
+                for k in 0..7 {
+                    let u = DVector::from_column_slice(&[i as f64 - 3.0, (j as f64 - 3.0) * 0.7, (k as f64 - 3.0) * 1.3]);
+                    draws.push((DVector::from_column_slice(&[0.5, -1.0, 2.0]) + &b * u).as_slice().to_vec());
+                }
+            }
+        }
+        let moments = |d: &[Vec<f64>]| {
+            let n = d.len() as f64;
+            let m = d.iter().fold(DVector::zeros(3), |a, x| a + DVector::from_column_slice(x)) / n;
+            let c = d.iter().fold(DMatrix::zeros(3, 3), |a, x| {
+                let e = DVector::from_column_slice(x) - &m;
+                a + &e * e.transpose()
+            }) / (n - 1.0);
+            (m, c)
+        };
+        let (m0, c0) = moments(&draws);
+        let moved = inflated_draws(&draws, 4.0);
+        let (m1, c1) = moments(&moved);
+        let want = inflated(c0.clone(), 4.0);
+        assert!((&m1 - &m0).norm() < 1e-12, "{m1} vs {m0}");
+        assert!((&c1 - &want).norm() < 1e-12 * want.norm(), "{c1} vs {want}");
+        // Wider where the likelihood dominates: every variance grows, by less than 4.
+        for j in 0..3 {
+            assert!(c1[(j, j)] > c0[(j, j)] && c1[(j, j)] < 4.0 * c0[(j, j)], "{j}: {} vs {}", c1[(j, j)], c0[(j, j)]);
+        }
+        assert_eq!(inflated_draws(&draws, 1.0), draws);
+    }
 
     /// On a Gaussian log density, Laplace's method is exact and its ELBO is the log evidence.
     #[test]

@@ -118,6 +118,12 @@ pub struct Kinodynamics {
     pub damping: Estimate,
     pub friction: Estimate,
     pub mass: Estimate,
+    /// The variance inflation the intervals allow for (>= 1; 1 for none): the likelihood part of
+    /// the block's precision divided by it ([`laplace::inflated`]), for the physics' deviations
+    /// correlated in time or the windows' disagreement (`svi::variance_inflation`,
+    /// [`laplace::cluster_inflation`]). BOM-NUTS applies SVI's to its draws
+    /// ([`laplace::inflated_draws`]).
+    pub inflation: f64,
 }
 
 /// Posterior of the joint attaching one part.

@@ -7,10 +7,12 @@
 //!
 //! NUTS samples continuous latents only, so the discrete ones — the tree and the joint types —
 //! are conditioned on: the structures that hold at least `structure_mass` of the SVI posterior's
-//! mass (at most `max_structures`), each weighed by the SVI guide's probability of the structure
-//! and sampled separately, except one with the density of a structure sampled before it (parts
-//! hung from a static part instead of the fixed frame, [`Structure::static_collapsed`]; checked
-//! on the density's value and gradient at three points), for which that one's draws stand. The
+//! mass (at most `max_structures`), each weighed by the SVI guide's probability of the structure.
+//! The most probable one is sampled; the others too with `all_structures` (off since stop 113:
+//! their draws are never reported, below), except one with the density of a structure sampled
+//! before it (parts hung from a static part instead of the fixed frame,
+//! [`Structure::static_collapsed`]; checked on the density's value and gradient at three
+//! points), for which that one's draws stand. The
 //! weight is the ELBO weighing: the guide's discrete logits
 //! sit at `log p(choice) + conditional ELBO` (natural-gradient fixed point, [`super::svi`]), so
 //! structures are compared by SVI's lower bound on their marginal likelihood, not by a bridge
@@ -32,8 +34,17 @@
 //! frames, which a sampler cannot undo; the SVI-against-NUTS comparison then measures the guide
 //! alone. (Sampling the likelihood raised to `n_eff / n` instead, a coarsened posterior, gave the
 //! same cones on the corpus and direction spreads 3.6 times SVI's on the real tracks (median),
-//! where every frame's coordinate loses its observation too: README, "BOM-NUTS", stop 65.) The
-//! kinodynamic intervals and the probabilities are the model's posterior, with no inflation.
+//! where every frame's coordinate loses its observation too: README, "BOM-NUTS", stop 65.) Since
+//! stop 113 the kinodynamic intervals carry SVI's allowances too: the draws of each part's
+//! kinodynamic block are moved so that their covariance has the likelihood part of its
+//! precision divided by SVI's variance inflation of that block ([`Kinodynamics::inflation`]:
+//! the physics' deviations correlated in time, the windows' disagreement;
+//! [`super::laplace::inflated_draws`]), and each interval is widened by the model discrepancy
+//! `dynamics.discrepancy_log_sd` in log space ([`super::summary::with_log_discrepancy`]), as
+//! SVI's are ([`crate::model::dynamics::log_normal_summary`]); the medians stay the draws'
+//! (to the inflation's linear map about their mean). Before, they were the model's posterior
+//! alone: on the `validation` objects 3 of 8 damping and friction intervals held the truth,
+//! where SVI's held 8 (README, "Stop 113"). The probabilities are the structures' weights.
 
 use std::collections::HashMap;
 use std::time::Instant;
@@ -49,7 +60,8 @@ use serde::{Deserialize, Serialize};
 use statrs::distribution::{ContinuousCDF, Normal};
 
 use super::guide::GuideState;
-use super::summary::{axis_from_draws, estimate_from_draws, widened};
+use super::laplace::inflated_draws;
+use super::summary::{axis_from_draws, estimate_from_draws, widened, with_log_discrepancy};
 use super::svi::Fitted;
 use super::{Kinodynamics, Posterior};
 use crate::model::density::{Density, NonCentred, Structure};
@@ -126,6 +138,15 @@ pub struct NutsConfig {
     /// `max_structures`.
     pub structure_mass: f64,
     pub max_structures: usize,
+    /// Sample every structure of `structure_mass` (true), or only the most probable one (false,
+    /// the default since stop 113). The reported posterior's continuous latents are the most
+    /// probable structure's draws, and the type and parent probabilities are the structures'
+    /// SVI weights, so another structure's draws are never reported: sampling it only checks the
+    /// convergence of parameters nothing reports, and it costs the most where a structure holds a
+    /// few per cent (the `validation` drawer `obj002`: its third structure, weight 0.043, still
+    /// missed R-hat at 4,250 draws a chain after 630 s, where the first passed in about 10 s;
+    /// README, "Stop 113"). A compute setting: the reported posterior is the same draw for draw.
+    pub all_structures: bool,
     /// Acceptance limits reported as warnings: largest R-hat, least bulk ESS, least tail ESS,
     /// largest share of divergent draws. The tail ESS (of the 5% and 95% quantiles, Vehtari et al.
     /// 2021 §4.3) since stop 112: the reported 90% intervals are those quantiles, and Vehtari et
@@ -155,6 +176,7 @@ impl Default for NutsConfig {
             start_scales: true,
             structure_mass: 0.99,
             max_structures: 4,
+            all_structures: false,
             r_hat_max: 1.01,
             ess_bulk_min: 400.0,
             ess_tail_min: 400.0,
@@ -187,17 +209,21 @@ pub struct SamplerReport {
     /// rounds): the denominator of the divergence check.
     pub total_draws: u64,
     /// Over every reported parameter (axis direction and point, kinodynamics, noise level) of
-    /// every sampled structure: the largest R-hat, the least bulk ESS and the least tail ESS.
+    /// every sampled structure ([`Self::sampled`]): the largest R-hat, the least bulk ESS and the least tail ESS.
     pub r_hat_max: f64,
     pub ess_bulk_min: f64,
     pub ess_tail_min: f64,
     /// Divergent transitions among the sampling draws, all chains and structures.
     pub divergences: u64,
-    /// Structures sampled, their weights, and the SVI mass they hold together.
+    /// Structures conditioned on, their weights, and the SVI mass they hold together (which of
+    /// them ran: `sampled`).
     pub structures: Vec<(Structure, f64)>,
     /// Per structure: the index of an earlier structure with the same density whose draws stand
-    /// for it ([`Structure::static_collapsed`]), none when it was sampled itself.
+    /// for it ([`Structure::static_collapsed`]), none when it was sampled itself or not at all.
     pub same_density_as: Vec<Option<usize>>,
+    /// Per structure: whether its chains ran (the first always; the others with
+    /// `nuts.all_structures`, unless an earlier structure's draws stand for them).
+    pub sampled: Vec<bool>,
     pub structure_mass: f64,
     pub runtime_s: f64,
     /// One line per failed diagnostic (empty when all hold).
@@ -913,6 +939,7 @@ pub fn sample(ev: &Evidence, model: &ModelConfig, svi: &Fitted, cfg: &NutsConfig
         divergences: 0,
         structures: structs.clone(),
         same_density_as: vec![None; structs.len()],
+        sampled: vec![false; structs.len()],
         structure_mass: held,
         runtime_s: 0.0,
         warnings: vec![],
@@ -933,7 +960,14 @@ pub fn sample(ev: &Evidence, model: &ModelConfig, svi: &Fitted, cfg: &NutsConfig
             }
             tracing::debug!("NUTS: structure {si} and structure {sj} collapse alike but their densities differ; sampled apart");
         }
+        if si > 0 && !cfg.all_structures {
+            // Only the first structure's draws are reported (`summarise_map`); its weight still
+            // counts in the type and parent probabilities below.
+            tracing::debug!("NUTS: structure {si} (weight {:.3}) not sampled: only the most probable structure's draws are reported (nuts.all_structures)", structs[si].1);
+            continue;
+        }
         sampled.push((si, collapsed));
+        report.sampled[si] = true;
         // Reported scalars per chain and draw, axis directions flipped onto SVI's side.
         let reference: Vec<Option<nalgebra::Vector3<f64>>> = posterior.joints.iter().map(|j| j.axis.as_ref().map(|a| a.direction)).collect();
         let diagnose = |d: &[Vec<Vec<f64>>]| diagnostics(&density, d, &reference, model, (si, cfg));
@@ -1057,13 +1091,18 @@ fn summarise_map(posterior: &mut Posterior, density: &Density<'_>, sd: &Structur
             continue;
         }
         let reference = j.axis.as_ref().map(|a| a.direction).unwrap_or(params[0].direction);
-        // SVI's widening of the axis for what the likelihood leaves out (module docs).
+        // SVI's widenings for what the likelihood leaves out (module docs), when SVI reported
+        // this joint type.
+        let same_type = j.axis.as_ref().is_some_and(|a| a.joint == s.joint);
         let inflation = j.axis.as_ref().map_or(1.0, |a| a.inflation);
+        let kd_inflation = j.kinodynamics.filter(|_| same_type).map_or(1.0, |k| k.inflation);
         j.axis = Some(widened(axis_from_draws(s.joint, &reference, &params, &params), inflation).with_model_discrepancy(model));
-        j.kinodynamics = s.kd.map(|(o, _)| {
-            let kp: Vec<dynamics::KinoParams<f64>> = all.iter().map(|x| dynamics::decode::<f64>(s.joint, &x[o..], &ev.effects[i], &model.dynamics)).collect();
-            let est = |f: &dyn Fn(&dynamics::KinoParams<f64>) -> f64| estimate_from_draws(&kp.iter().map(f).collect::<Vec<f64>>());
-            Kinodynamics { damping: est(&|k| k.damping), friction: est(&|k| k.friction), mass: est(&|k| k.mass) }
+        j.kinodynamics = s.kd.map(|(o, d)| {
+            let block: Vec<Vec<f64>> = all.iter().map(|x| x[o..o + d].to_vec()).collect();
+            let kp: Vec<dynamics::KinoParams<f64>> = inflated_draws(&block, kd_inflation).iter().map(|x| dynamics::decode::<f64>(s.joint, x, &ev.effects[i], &model.dynamics)).collect();
+            let discrepancy = model.dynamics.discrepancy_log_sd;
+            let est = |f: &dyn Fn(&dynamics::KinoParams<f64>) -> f64| with_log_discrepancy(estimate_from_draws(&kp.iter().map(f).collect::<Vec<f64>>()), discrepancy);
+            Kinodynamics { damping: est(&|k| k.damping), friction: est(&|k| k.friction), mass: est(&|k| k.mass), inflation: kd_inflation }
         });
     }
 }

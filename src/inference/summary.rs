@@ -66,7 +66,7 @@ pub fn joints(
                     Estimate { median, sd, q05, q95 }
                 };
                 let [d, f, m] = dynamics::prior_scales(axis_type, &model.dynamics);
-                Kinodynamics { damping: est(0, d), friction: est(1, f), mass: est(2, m) }
+                Kinodynamics { damping: est(0, d), friction: est(1, f), mass: est(2, m), inflation: inflation[i][axis_type.index()].max(1.0) }
             });
             let mean_params: [JointParams<f64>; 3] = JointType::ALL.map(|jt| {
                 let bl = layout.blocks[i][jt.index()];
@@ -182,10 +182,52 @@ pub fn estimate_from_draws(v: &[f64]) -> Estimate {
     Estimate { median: q(0.5), sd, q05: q(0.05), q95: q(0.95) }
 }
 
+/// A positive parameter's estimate from draws (`e`, median > 0) times `exp(delta)` with an
+/// independent model discrepancy `delta ~ N(0, discrepancy^2)` (log-sd; 0 for none), as
+/// [`dynamics::log_normal_summary`] gives SVI's: each half of the 90% interval in log space,
+/// `ln(median / q05)` and `ln(q95 / median)`, becomes its root-sum-square with `1.645 *
+/// discrepancy` (exact for a log-normal posterior, each side apart for a skewed one), the median
+/// stays, and the sd scales with the interval's width. `e` unchanged when its median is not positive.
+pub fn with_log_discrepancy(e: Estimate, discrepancy: f64) -> Estimate {
+    const Z: f64 = 1.644_853_6;
+    if !(e.median > 0.0) || !(discrepancy > 0.0) {
+        return e;
+    }
+    let lm = e.median.ln();
+    let widen = |half: f64| half.max(0.0).hypot(Z * discrepancy);
+    let (q05, q95) = ((lm - widen(lm - e.q05.max(f64::MIN_POSITIVE).ln())).exp(), (lm + widen(e.q95.ln() - lm)).exp());
+    let sd = if e.q95 > e.q05 {
+        e.sd * (q95 - q05) / (e.q95 - e.q05)
+    } else {
+        // A point mass: the discrepancy's own log-normal sd.
+        ((discrepancy * discrepancy).exp() - 1.0).sqrt() * e.median * (discrepancy * discrepancy / 2.0).exp()
+    };
+    Estimate { median: e.median, sd, q05, q95 }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use rand::SeedableRng;
+
+    /// The discrepancy widens an estimate as [`dynamics::log_normal_summary`] widens SVI's: a
+    /// log-normal posterior's draws give its interval, and a point mass the discrepancy's own;
+    /// the median never moves.
+    #[test]
+    fn log_discrepancy_widens_like_the_log_normal_summary() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let (median, s, delta) = (2.0_f64, 0.05, 0.1);
+        let draws: Vec<f64> = (0..200_000).map(|_| median * (s * { let z: f64 = StandardNormal.sample(&mut rng); z }).exp()).collect();
+        let e = with_log_discrepancy(estimate_from_draws(&draws), delta);
+        let (m, _, q05, q95) = dynamics::log_normal_summary(median, 1.0, 0.0, s, delta);
+        assert!((e.median / m - 1.0).abs() < 2e-3 && (e.q05 / q05 - 1.0).abs() < 3e-3 && (e.q95 / q95 - 1.0).abs() < 3e-3, "{e:?} vs {q05}..{q95}");
+        let point = with_log_discrepancy(Estimate { median, sd: 0.0, q05: median, q95: median }, delta);
+        let (_, sd, q05, q95) = dynamics::log_normal_summary(median, 1.0, 0.0, 0.0, delta);
+        assert_eq!(point.median, median);
+        assert!((point.q05 / q05 - 1.0).abs() < 1e-12 && (point.q95 / q95 - 1.0).abs() < 1e-12 && (point.sd / sd - 1.0).abs() < 1e-12, "{point:?}");
+        let none = with_log_discrepancy(e, 0.0);
+        assert_eq!((none.q05, none.q95), (e.q05, e.q95));
+    }
 
     /// Directions about z tilted by an isotropic Gaussian of `sd` rad per direction across it, as
     /// prismatic joint parameters.

@@ -136,6 +136,9 @@ pub struct StructureJson {
     /// this one; absent when this one was sampled.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub same_density_as: Option<usize>,
+    /// Beyond the contract: whether this structure's chains ran (the most probable always; the
+    /// others with `nuts.all_structures`).
+    pub sampled: bool,
 }
 
 fn sampler_json(run: &Run, s: &SamplerReport) -> SamplerJson {
@@ -160,6 +163,7 @@ fn sampler_json(run: &Run, s: &SamplerReport) -> SamplerJson {
                 types: st.types.iter().enumerate().map(|(i, t)| (labels.get(i).copied().unwrap_or(0).to_string(), t.name().to_string())).collect(),
                 weight: *w,
                 same_density_as: s.same_density_as.get(k).copied().flatten(),
+                sampled: s.sampled.get(k).copied().unwrap_or(false),
             })
             .collect(),
         warnings: s.warnings.clone(),
