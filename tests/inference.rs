@@ -192,6 +192,82 @@ fn nested_revolute_gradient_matches_finite_differences() {
     assert!(bad.is_empty(), "gradient vs central differences (index, gradient, fd): {bad:?}");
 }
 
+/// Part `i`'s physics prior value at `x`, as the density's forward differences take it (robust
+/// windows, `f64`; `density::physics_prior_value`).
+fn physics_value(d: &Density, cfg: &Config, x: &[f64], i: usize) -> f64 {
+    use bom::model::density::{part_transforms, physics_prior_value, pre_transforms, PartValue};
+    let ev = d.evidence();
+    let (frames, n, parent) = (ev.len(), d.slots().len(), &d.structure().parent);
+    let params: Vec<bom::model::JointParams<f64>> = (0..n).map(|m| d.params(x, m)).collect();
+    let zeros = vec![0.0; frames];
+    let values: Vec<PartValue<'_>> = (0..n)
+        .map(|m| {
+            let s = &d.slots()[m];
+            PartValue { params: &params[m], q: s.q.map_or(&zeros[..], |o| &x[o..o + frames]), kd: s.kd.map(|(o, k)| &x[o..o + k]) }
+        })
+        .collect();
+    let transforms = part_transforms(parent, &values, frames);
+    let pre = pre_transforms(parent, i, &transforms, frames);
+    let desc = bom::model::tree::descendants(parent, i);
+    physics_prior_value(ev, i, &values[i], &pre, &desc, &values, &transforms, &cfg.model, true)
+}
+
+/// What `density::cross_physics_differences` leaves out is exactly nothing: on `obj075`'s bag
+/// (dynamic mode) with a lid hinged on a drawer, moving a prismatic drawer's centre of mass
+/// (2 cm a standardised unit) leaves the lid's physics bit for bit, while a revolute drawer's
+/// moves it (its radius turns the lid's hinge), so the check can fail; and the drawer's
+/// centre-of-mass differences reach the lid only when the drawer is revolute.
+#[test]
+fn a_prismatic_centre_of_mass_moves_no_descendant() {
+    use bom::model::JointType::{Prismatic, Revolute, Rigid};
+    let cfg = Config::new();
+    let run = bom::pipeline::replay(&[PathBuf::from("bags/corpus/obj075_procedural.mcap")], &cfg).expect("replay");
+    let ev = bom::pipeline::final_evidence(&run, &cfg);
+    assert!(!ev.windows.is_empty(), "dynamic mode");
+    let label = |l: u32| ev.parts.iter().position(|p| p.label == l).expect("part");
+    let (cabinet, drawer, lid) = (label(1), label(2), label(3));
+    for drawer_type in [Prismatic, Revolute] {
+        let mut parent = vec![0; ev.parts.len()];
+        let mut types = vec![Rigid; ev.parts.len()];
+        (parent[drawer], types[drawer]) = (cabinet + 1, drawer_type);
+        (parent[lid], types[lid]) = (drawer + 1, Revolute);
+        let d = Density::new(&ev, &cfg.model, Structure { parent, types });
+        let mut x = vec![0.0; d.dim()];
+        // Both joints move: the drawer 0-0.2 m, the lid's edge 0-0.1 m, over the recording.
+        let frames = ev.len();
+        for (i, amplitude) in [(drawer, 0.2), (lid, 0.1)] {
+            let o = d.slots()[i].q.expect("a movable joint's coordinates");
+            for t in 0..frames {
+                x[o + t] = amplitude * t as f64 / frames as f64;
+            }
+        }
+        // Directions off the degenerate `v = 0` (`model::prismatic`, `model::revolute`).
+        for (i, v) in [(drawer, [2.0, 2.0, 1.0]), (lid, [1.0, 0.0, 2.0])] {
+            x[d.slots()[i].xi + 5..d.slots()[i].xi + 8].copy_from_slice(&v);
+        }
+        let base = physics_value(&d, &cfg, &x, lid);
+        assert!(base.is_finite(), "{drawer_type:?}: {base}");
+        let s = d.slots()[drawer];
+        let moved: Vec<f64> = (0..3)
+            .map(|k| {
+                let mut xp = x.clone();
+                xp[s.xi + k] += 1.0;
+                physics_value(&d, &cfg, &xp, lid) - base
+            })
+            .collect();
+        let differenced = bom::model::density::cross_physics_differences(&d.structure().parent, d.slots())
+            .into_iter()
+            .any(|(j, idx, parts)| j == drawer && idx < s.xi + 3 && parts.contains(&lid));
+        if drawer_type == Prismatic {
+            assert!(moved.iter().all(|&m| m == 0.0), "prismatic drawer's centre of mass moved the lid's physics by {moved:?} nats");
+            assert!(!differenced, "no differences for what cannot move");
+        } else {
+            assert!(moved.iter().any(|&m| m.abs() > 1e-6), "revolute drawer's centre of mass: {moved:?} nats");
+            assert!(differenced, "differences for what moves");
+        }
+    }
+}
+
 /// In dynamic mode the physics prior's gradient in every part's own axis and centre of mass comes
 /// from the dual numbers of one simulation, and what one part's parameters do to another's physics
 /// from forward differences (`density::cross_physics_differences`). Checked against central

@@ -133,7 +133,7 @@ pub struct StructureJson {
     pub weight: f64,
     /// Beyond the contract: the index in `structures` of an earlier structure with the same
     /// density (parts hung from a static part instead of the fixed frame), whose draws stand for
-    /// this one; absent when this one was sampled.
+    /// this one; absent when this one was sampled itself or not at all (`sampled`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub same_density_as: Option<usize>,
     /// Beyond the contract: whether this structure's chains ran (the most probable always; the
