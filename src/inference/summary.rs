@@ -200,7 +200,7 @@ pub fn with_log_discrepancy(e: Estimate, discrepancy: f64) -> Estimate {
         e.sd * (q95 - q05) / (e.q95 - e.q05)
     } else {
         // A point mass: the discrepancy's own log-normal sd.
-        ((discrepancy * discrepancy).exp() - 1.0).sqrt() * e.median * (discrepancy * discrepancy / 2.0).exp()
+        dynamics::log_normal_summary(e.median, 1.0, 0.0, 0.0, discrepancy).1
     };
     Estimate { median: e.median, sd, q05, q95 }
 }
