@@ -192,26 +192,6 @@ fn nested_revolute_gradient_matches_finite_differences() {
     assert!(bad.is_empty(), "gradient vs central differences (index, gradient, fd): {bad:?}");
 }
 
-/// Part `i`'s physics prior value at `x`, as the density's forward differences take it (robust
-/// windows, `f64`; `density::physics_prior_value`).
-fn physics_value(d: &Density, cfg: &Config, x: &[f64], i: usize) -> f64 {
-    use bom::model::density::{part_transforms, physics_prior_value, pre_transforms, PartValue};
-    let ev = d.evidence();
-    let (frames, n, parent) = (ev.len(), d.slots().len(), &d.structure().parent);
-    let params: Vec<bom::model::JointParams<f64>> = (0..n).map(|m| d.params(x, m)).collect();
-    let zeros = vec![0.0; frames];
-    let values: Vec<PartValue<'_>> = (0..n)
-        .map(|m| {
-            let s = &d.slots()[m];
-            PartValue { params: &params[m], q: s.q.map_or(&zeros[..], |o| &x[o..o + frames]), kd: s.kd.map(|(o, k)| &x[o..o + k]) }
-        })
-        .collect();
-    let transforms = part_transforms(parent, &values, frames);
-    let pre = pre_transforms(parent, i, &transforms, frames);
-    let desc = bom::model::tree::descendants(parent, i);
-    physics_prior_value(ev, i, &values[i], &pre, &desc, &values, &transforms, &cfg.model, true)
-}
-
 /// What `density::cross_physics_differences` leaves out is exactly nothing: on `obj075`'s bag
 /// (dynamic mode) with a lid hinged on a drawer, moving a prismatic drawer's centre of mass
 /// (2 cm a standardised unit) leaves the lid's physics bit for bit, while a revolute drawer's
@@ -245,14 +225,14 @@ fn a_prismatic_centre_of_mass_moves_no_descendant() {
         for (i, v) in [(drawer, [2.0, 2.0, 1.0]), (lid, [1.0, 0.0, 2.0])] {
             x[d.slots()[i].xi + 5..d.slots()[i].xi + 8].copy_from_slice(&v);
         }
-        let base = physics_value(&d, &cfg, &x, lid);
+        let base = d.physics_value(&x, lid);
         assert!(base.is_finite(), "{drawer_type:?}: {base}");
         let s = d.slots()[drawer];
         let moved: Vec<f64> = (0..3)
             .map(|k| {
                 let mut xp = x.clone();
                 xp[s.xi + k] += 1.0;
-                physics_value(&d, &cfg, &xp, lid) - base
+                d.physics_value(&xp, lid) - base
             })
             .collect();
         let differenced = bom::model::density::cross_physics_differences(&d.structure().parent, d.slots())

@@ -878,12 +878,7 @@ impl<'a> Density<'a> {
         let parent = &self.structure.parent;
         let params: Vec<JointParams<f64>> = (0..n).map(|i| self.params(x, i)).collect();
         let zeros = vec![0.0; frames];
-        let values: Vec<PartValue<'_>> = (0..n)
-            .map(|i| {
-                let s = &self.slots[i];
-                PartValue { params: &params[i], q: s.q.map_or(&zeros[..], |o| &x[o..o + frames]), kd: s.kd.map(|(o, d)| &x[o..o + d]) }
-            })
-            .collect();
+        let values = self.part_values(x, &params, &zeros);
         let transforms = part_transforms(parent, &values, frames);
         let positions: Vec<Vec<Vector3<f64>>> = (0..n).map(|m| (0..frames).map(|t| transforms[m][t].apply(&params[m].com)).collect()).collect();
         let mut lp = 0.0;
@@ -1041,6 +1036,27 @@ impl<'a> Density<'a> {
         let pre = pre_transforms(parent, i, transforms, self.ev.len());
         let desc = tree::descendants(parent, i);
         physics_prior_kinematic(self.ev, i, &values[i], xk, &pre, &desc, values, transforms, self.model, replay)
+    }
+
+    /// Every part's [`PartValue`] at the coordinates `x`: `params[i]` is [`Self::params`]`(x, i)`
+    /// and `zeros` one 0 per grid frame (the coordinates of a part without any).
+    fn part_values<'v>(&self, x: &'v [f64], params: &'v [JointParams<f64>], zeros: &'v [f64]) -> Vec<PartValue<'v>> {
+        let frames = self.ev.len();
+        self.slots
+            .iter()
+            .zip(params)
+            .map(|(s, p)| PartValue { params: p, q: s.q.map_or(zeros, |o| &x[o..o + frames]), kd: s.kd.map(|(o, d)| &x[o..o + d]) })
+            .collect()
+    }
+
+    /// Part `i`'s physics prior value \[nats\] at the coordinates `x`, in `f64` as the density's
+    /// forward differences take it (robust windows; 0 for a part without kinodynamics).
+    pub fn physics_value(&self, x: &[f64], i: usize) -> f64 {
+        let params: Vec<JointParams<f64>> = (0..self.slots.len()).map(|m| self.params(x, m)).collect();
+        let zeros = vec![0.0; self.ev.len()];
+        let values = self.part_values(x, &params, &zeros);
+        let transforms = part_transforms(&self.structure.parent, &values, self.ev.len());
+        self.part_physics_value(i, &values, &transforms)
     }
 
     /// `part_physics(..).0`, simulated in `f64` ([`physics_prior_value`]).
@@ -1317,12 +1333,7 @@ impl<'a> NonCentred<'a> {
         let frames = ev.len();
         let n = ev.parts.len();
         let zeros = vec![0.0; frames];
-        let values: Vec<PartValue<'_>> = (0..n)
-            .map(|i| {
-                let s = &d.slots[i];
-                PartValue { params: &params[i], q: s.q.map_or(&zeros[..], |o| &y[o..o + frames]), kd: s.kd.map(|(o, k)| &y[o..o + k]) }
-            })
-            .collect();
+        let values = d.part_values(y, params, &zeros);
         let parent = &d.structure.parent;
         let transforms = part_transforms(parent, &values, frames);
         (0..n)
