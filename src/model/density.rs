@@ -26,11 +26,14 @@
 //! parameters (axis, centre of mass) seeded in the same dual numbers, one simulation a window
 //! ([`physics_prior_kinematic`]). What one part's parameters do to another part's physics (a
 //! parent's axis moving a child's joint, a child's mass and centre of mass loading its parent)
-//! is taken by forward differences of that part's value ([`cross_physics_differences`]). Left
-//! out: a nested joint's physics through its parent's or children's *coordinates*. A gradient
-//! that is not exactly the density's keeps Hamiltonian Monte Carlo exact
-//! (leapfrog steps stay volume-preserving and reversible, and acceptance uses the exact
-//! density) and only costs it step size.
+//! is taken by forward differences of that part's value ([`cross_physics_differences`]), and so
+//! is what another part's *coordinate* at a window's first frame does to a nested joint's
+//! physics in that window ([`coordinate_cross_differences`]; left out until stop 115). A
+//! gradient that is not exactly the density's keeps Hamiltonian Monte Carlo exact (leapfrog
+//! steps stay volume-preserving and reversible, and acceptance uses the exact density), but it
+//! costs more than step size: a wrong force's energy error grows with the trajectory's length,
+//! not with the step, so the step size adaptation shrinks the step until the depth limit caps
+//! the trajectory (`slide_microwave` at step size 1e-3-1e-4 before stop 115).
 //! SVI's conditional ELBOs are expectations of the same terms under its guide
 //! ([`crate::inference::svi`]).
 
@@ -439,11 +442,7 @@ fn physics_prior_terms(
         let jw = wj.view(ev.effects[i]);
         let (lw, gxw, gqw, lw_kept) = match terms {
             Terms::Value => {
-                let l = if robust {
-                    dynamics::robust_window_prior_value(&jw, win, s.q, observed, xi, dyncfg, model.velocity_sd_mps)
-                } else {
-                    dynamics::window_prior_value(&jw, win, s.q, observed, xi, dyncfg)
-                };
+                let l = window_value(&jw, win, s.q, observed, xi, model, robust);
                 (l, vec![], vec![], l)
             }
             Terms::Kinodynamic if robust => {
@@ -1016,6 +1015,23 @@ impl<'a> Density<'a> {
             grad[idx] += d / FD_STEP;
             xp[idx] = x[idx];
         }
+        // Another part's coordinate at a window's first frame: that window's term only.
+        for (j, idx, w, parts) in coordinate_cross_differences(self.ev, parent, &self.slots) {
+            xp[idx] = x[idx] + FD_STEP;
+            let pv: Vec<PartValue<'_>> = (0..n)
+                .map(|m| {
+                    let mut v = values[m];
+                    if m == j {
+                        v.q = self.slots[m].q.map_or(v.q, |o| &xp[o..o + frames]);
+                    }
+                    v
+                })
+                .collect();
+            let tr = part_transforms(parent, &pv, frames);
+            let d: f64 = parts.iter().map(|&i| self.part_window_value(i, w, &pv, &tr) - self.part_window_value(i, w, values, transforms)).sum();
+            grad[idx] += d / FD_STEP;
+            xp[idx] = x[idx];
+        }
         (total, grad)
     }
 
@@ -1069,6 +1085,18 @@ impl<'a> Density<'a> {
         let desc = tree::descendants(parent, i);
         physics_prior_value(self.ev, i, &values[i], &pre, &desc, values, transforms, self.model, true)
     }
+
+    /// Window `w`'s term of [`Self::part_physics_value`] (what [`coordinate_cross_differences`]
+    /// perturbs; 0 for a part without kinodynamics).
+    fn part_window_value(&self, i: usize, w: usize, values: &[PartValue<'_>], transforms: &[Vec<Displacement<f64>>]) -> f64 {
+        let Some(xi) = values[i].kd else { return 0.0 };
+        let parent = &self.structure.parent;
+        let pre = pre_transforms(parent, i, transforms, self.ev.len());
+        let desc = tree::descendants(parent, i);
+        let win = &self.ev.windows[w];
+        let wj = window_joint(self.ev, i, &values[i], win, &pre, &desc, values, transforms, self.model);
+        window_value(&wj.view(self.ev.effects[i]), win, values[i].q, None, xi, self.model, true)
+    }
 }
 
 /// The kinematic parameters of a part that the physics sees (its forward differences): all but
@@ -1117,6 +1145,48 @@ pub fn cross_physics_differences(parent: &[usize], slots: &[PartSlots]) -> Vec<(
         }
     }
     out
+}
+
+/// The forward differences of the physics through another part's *coordinates*, as `(j, idx, w,
+/// parts)`: part `j`'s coordinate at window `w`'s first grid frame (`idx` into the latents) and
+/// the movable parts whose window-`w` physics it enters. [`window_joint`] places a part's joint
+/// and its locked subtree at the window's first frame: its axis by the parent's displacement
+/// there, so every movable ancestor's coordinate at that frame moves it (a door on a slider: the
+/// measured push's lever about the hinge), and its subtree's centres of mass and inertias by
+/// their displacements there, so a revolute part's physics also sees the coordinates of the
+/// movable parts below it (a prismatic part's sees only their masses, [`dynamics::decode`]).
+/// Only window `w`'s term of a part's physics depends on that coordinate. Until stop 115 these
+/// were left out of the gradient (`slide_microwave`: the slider's coordinate at a door window's
+/// first frame had gradient 1.08e4 against central differences' 5.99e3 nats/m), and HMC's energy
+/// error, which a wrong force does not shrink with the step, drove the step size to 1e-3-1e-4 with
+/// every draw at the depth limit.
+pub fn coordinate_cross_differences(ev: &Evidence, parent: &[usize], slots: &[PartSlots]) -> Vec<(usize, usize, usize, Vec<usize>)> {
+    let movable = |i: usize| slots[i].kd.is_some();
+    let mut out = Vec::new();
+    for (j, s) in slots.iter().enumerate() {
+        let Some(o) = s.q.filter(|_| movable(j)) else { continue };
+        let parts: Vec<usize> = (0..slots.len())
+            .filter(|&i| i != j && movable(i))
+            .filter(|&i| tree::descendants(parent, j).contains(&i) || (slots[i].joint == JointType::Revolute && tree::descendants(parent, i).contains(&j)))
+            .collect();
+        if parts.is_empty() {
+            continue;
+        }
+        for (w, win) in ev.windows.iter().enumerate() {
+            out.push((j, o + win.frames[0], w, parts.clone()));
+        }
+    }
+    out
+}
+
+/// One window's physics prior value for [`physics_prior_terms`]' values and
+/// [`Density::part_window_value`]: window-robust ([`dynamics::robust_window_prior_value`]) or plain.
+fn window_value(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64], observed: Option<&dynamics::Observed>, xi: &[f64], model: &ModelConfig, robust: bool) -> f64 {
+    if robust {
+        dynamics::robust_window_prior_value(jw, win, q, observed, xi, &model.dynamics, model.velocity_sd_mps)
+    } else {
+        dynamics::window_prior_value(jw, win, q, observed, xi, &model.dynamics)
+    }
 }
 
 /// The displacement of part `i`'s parent at every grid frame (identity under the fixed frame).
@@ -1326,8 +1396,9 @@ impl<'a> NonCentred<'a> {
     /// `Psi` of `parts` at `y` (non-centred entries are read as coordinates; only the windows'
     /// first frames, which are centred, enter the simulation), in the physics prior's dual numbers
     /// when `dual` ([`window_psi_kinematic`]: the density takes these, so it need not simulate
-    /// again), else in `f64` ([`dynamics::window_psi`], for forward differences).
-    fn simulate(&self, y: &[f64], params: &[JointParams<f64>], parts: &[usize], dual: bool) -> Vec<Option<Simulated>> {
+    /// again), else in `f64` ([`dynamics::window_psi`], for forward differences) — of window
+    /// `only` alone where given (the others' trajectories then empty).
+    fn simulate(&self, y: &[f64], params: &[JointParams<f64>], parts: &[usize], dual: bool, only: Option<usize>) -> Vec<Option<Simulated>> {
         let d = &self.density;
         let (ev, model) = (d.ev, d.model);
         let frames = ev.len();
@@ -1351,7 +1422,12 @@ impl<'a> NonCentred<'a> {
                 let trajectories = if dual {
                     Trajectories::Dual(windows.map(|(win, wj)| window_psi_kinematic((ev, i, &values[i], xk, win, &pre, &desc, &values, &transforms, model, &wj.view(ev.effects[i]), None, None, None))).collect())
                 } else {
-                    Trajectories::Value(windows.map(|(win, wj)| dynamics::window_psi(&wj.view(ev.effects[i]), win, values[i].q[win.frames[0]], xi, &model.dynamics)).collect())
+                    Trajectories::Value(
+                        windows
+                            .enumerate()
+                            .map(|(w, (win, wj))| if only.is_none_or(|o| o == w) { dynamics::window_psi(&wj.view(ev.effects[i]), win, values[i].q[win.frames[0]], xi, &model.dynamics) } else { Vec::new() })
+                            .collect(),
+                    )
                 };
                 let deviation = dynamics::decode::<f64>(s.joint, xi, &ev.effects[i], &model.dynamics).deviation;
                 Some(Simulated { trajectories, deviation })
@@ -1369,7 +1445,7 @@ impl<'a> NonCentred<'a> {
             return y.to_vec();
         }
         let all: Vec<usize> = (0..self.frames.len()).collect();
-        let sim = self.simulate(y, &self.all_params(y), &all, true);
+        let sim = self.simulate(y, &self.all_params(y), &all, true, None);
         let mut x = self.apply(y, &sim, model_coordinate);
         self.rests_to_model(y, &sim, &mut x);
         x
@@ -1381,7 +1457,7 @@ impl<'a> NonCentred<'a> {
             return x.to_vec();
         }
         let all: Vec<usize> = (0..self.frames.len()).collect();
-        let sim = self.simulate(x, &self.all_params(x), &all, true);
+        let sim = self.simulate(x, &self.all_params(x), &all, true, None);
         let mut y = self.apply(x, &sim, sampler_coordinate);
         for (i, s) in sim.iter().enumerate() {
             let (Some(s), Some(o)) = (s, self.density.slots[i].q) else { continue };
@@ -1425,7 +1501,7 @@ impl<'a> NonCentred<'a> {
         let n = self.frames.len();
         let all: Vec<usize> = (0..n).collect();
         let params = self.all_params(y);
-        let sim = self.simulate(y, &params, &all, true);
+        let sim = self.simulate(y, &params, &all, true, None);
         let mut x = self.apply(y, &sim, model_coordinate);
         self.rests_to_model(y, &sim, &mut x);
         let mut g = vec![0.0; d.dim];
@@ -1494,17 +1570,38 @@ impl<'a> NonCentred<'a> {
                 (!parts.is_empty()).then_some((j, idx, parts))
             })
             .collect();
+        let mut yp = y.to_vec();
+        // Another part's coordinate at a window's first frame moves that window's `Psi`
+        // ([`coordinate_cross_differences`]; the coordinate is the model's there: a window's first
+        // frame is never mapped).
+        for (_, idx, w, parts) in coordinate_cross_differences(d.ev, parent, &d.slots) {
+            let parts: Vec<usize> = parts.into_iter().filter(|i| with_frames.contains(i)).collect();
+            if parts.is_empty() {
+                continue;
+            }
+            yp[idx] = y[idx] + FD_STEP;
+            let (base, moved) = (self.simulate(y, &params, &parts, false, Some(w)), self.simulate(&yp, &params, &parts, false, Some(w)));
+            let mut acc = 0.0;
+            for &i in &parts {
+                let (Some(a), Some(b), Some(o)) = (&base[i], &moved[i], d.slots[i].q) else { continue };
+                for &(_, kk, t, lambda) in self.frames[i].iter().filter(|f| f.0 == w) {
+                    let c = 1.0 - lambda * a.deviation.powf(1.0 - lambda);
+                    acc += g[o + t] * c * (b.psi(w, kk) - a.psi(w, kk));
+                }
+            }
+            grad[idx] += acc / FD_STEP;
+            yp[idx] = y[idx];
+        }
         if cross.is_empty() {
             return lp;
         }
         // The differences' base, from the same `f64` path as the perturbed ones.
-        let base = self.simulate(y, &params, &with_frames, false);
-        let mut yp = y.to_vec();
+        let base = self.simulate(y, &params, &with_frames, false, None);
         for (j, idx, parts) in cross {
             yp[idx] = y[idx] + FD_STEP;
             let mut pp = params.clone();
             pp[j] = d.params(&yp, j);
-            let moved = self.simulate(&yp, &pp, &parts, false);
+            let moved = self.simulate(&yp, &pp, &parts, false, None);
             let mut acc = 0.0;
             for &i in &parts {
                 let (Some(a), Some(b), Some(o)) = (&base[i], &moved[i], d.slots[i].q) else { continue };
