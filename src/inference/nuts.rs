@@ -134,6 +134,13 @@ pub struct NutsConfig {
     /// On since stop 111. A constant change of the sampler's coordinates: the posterior is the
     /// same; the warm-up's first draws are cheaper.
     pub start_scales: bool,
+    /// Dynamic mode: narrow each kinodynamic block's preconditioner to the curvature of the
+    /// coordinates the sampler actually moves (the private `block_curvature`, why there): SVI's
+    /// Laplace covariance is of the centred coordinates, and in (partially) non-centred ones a
+    /// part's damping and mass also move every non-centred coordinate's trajectory, so the block
+    /// can be far narrower there. On since stop 116. A constant change of the sampler's
+    /// coordinates: the posterior is the same.
+    pub block_curvature: bool,
     /// Structures sampled: those holding this much of the SVI posterior's mass, at most
     /// `max_structures`.
     pub structure_mass: f64,
@@ -174,6 +181,7 @@ impl Default for NutsConfig {
             partial_centring: true,
             shear: true,
             start_scales: true,
+            block_curvature: true,
             structure_mass: 0.99,
             max_structures: 4,
             all_structures: false,
@@ -242,8 +250,9 @@ impl LogpError for NonFinite {
 
 /// The model's density as nuts-rs's `CpuLogpFunc`, in coordinates preconditioned by SVI's
 /// Laplace fits: each part's kinodynamic block is `xi = m + L z` with `m` and `L L^T` the
-/// guide's mean and covariance of it, and the sampler moves `z` (a constant linear map, so no
-/// Jacobian term); with `nuts.shear`, `m + L z` is the sheared block of [`Block`], which bends
+/// guide's mean and covariance of it (with `nuts.block_curvature`, narrowed to the sampled
+/// coordinates' curvature at the guide's mean: [`block_curvature`]), and the sampler moves `z`
+/// (a constant linear map, so no Jacobian term); with `nuts.shear`, `m + L z` is the sheared block of [`Block`], which bends
 /// this map along the ridge. Why: damping and friction trade off along a long, narrow ridge (a
 /// push moves as far with more damping and less friction); with the diagonal mass matrix nuts-rs
 /// adapts, the step size shrank to the ridge's width and the drawer bag's damping had a bulk ESS
@@ -461,11 +470,16 @@ struct StructureDraws {
 /// A start for a chain: a draw of SVI's guide for the structure's blocks (guide means plus its
 /// sds times standard normals).
 pub fn start_from_guide(density: &Density<'_>, guide: &GuideState, rng: &mut ChaCha8Rng) -> Vec<f64> {
+    guide_point(density, guide, || StandardNormal.sample(rng))
+}
+
+/// The guide's means plus its sds times `z()` (standard normals: a draw; zeros: the mean), in
+/// the model's coordinates of `density`.
+fn guide_point(density: &Density<'_>, guide: &GuideState, mut z: impl FnMut() -> f64) -> Vec<f64> {
     let ev = density.evidence();
     let frames = ev.len();
     let mut x = vec![0.0; density.dim()];
     let theta = &guide.theta;
-    let mut z = || -> f64 { StandardNormal.sample(rng) };
     for (i, s) in density.slots().iter().enumerate() {
         let b = guide.layout.blocks[i][s.joint.index()];
         for j in 0..s.np {
@@ -525,6 +539,73 @@ fn preconditioner(density: &Density<'_>, guide: &GuideState, model: &ModelConfig
         }
     }
     out
+}
+
+/// Each kinodynamic block of `logp` narrowed to the curvature of the sampler's own coordinates
+/// at `x` (model coordinates; [`run_chains`] gives the guide's mean), in place: with `H` the
+/// block's Hessian of `-log p` in its preconditioned coordinates `z` (central differences of the
+/// gradient, `2 d` gradients for a block of `d`), eigenvalues below 1 raised to 1, the block's
+/// covariance `L L^T` becomes `L H^-1 L^T`. Why: `L L^T` is SVI's Laplace covariance of the
+/// block given the *centred* coordinates; in the (partially) non-centred coordinates the sampler
+/// moves, a part's damping and mass also move the trajectory `Psi` of every non-centred
+/// coordinate (`q = Psi + sigma_d u`), so the observations pin them there. On `adroit_door`'s
+/// latch the damping-mass direction was 1.8e4 times stiffer than the guide's (conditional sd
+/// 1/135 of it); the warm-up's step size fell to 0.002-0.013 and 200 warm-up draws took 570-620 s
+/// (README, "Stop 116"). Narrow only: a direction flatter than the guide keeps the guide's width,
+/// and the adapted mass matrix widens it where the draws need. A block whose Hessian is not
+/// finite, or whose new covariance has no Cholesky factor, is left as it was. A constant linear
+/// map of the sampler's coordinates: no Jacobian, the posterior is the same.
+fn block_curvature(logp: &mut Logp<'_>, x: &[f64]) {
+    let hessians = block_hessians(logp, x);
+    for (b, hs) in logp.blocks.iter_mut().zip(hessians) {
+        let Some(hs) = hs else { continue };
+        let eig = hs.symmetric_eigen();
+        if eig.eigenvalues.iter().all(|&v| v <= 1.0) {
+            continue;
+        }
+        let inv = DMatrix::from_diagonal(&eig.eigenvalues.map(|v| 1.0 / v.max(1.0)));
+        let cov = &b.l * &eig.eigenvectors * inv * eig.eigenvectors.transpose() * b.l.transpose();
+        if let Some(ch) = nalgebra::Cholesky::new((&cov + cov.transpose()) * 0.5) {
+            b.l = ch.l();
+        }
+    }
+}
+
+/// The Hessian of `-log p` over each of `logp`'s kinodynamic blocks in its sampler coordinates
+/// (the blocks' `z` divided by `logp.scale`; [`run_chains`] narrows with all scales 1) at model
+/// coordinates `x`, by central differences of the
+/// gradient, all at the same point; none for a block where the density or the Hessian is not
+/// finite. `2 d` gradients a block of `d`.
+fn block_hessians(logp: &mut Logp<'_>, x: &[f64]) -> Vec<Option<DMatrix<f64>>> {
+    let z0 = logp.to_sampler(&logp.density.from_model(x));
+    let n = z0.len();
+    let mut g = vec![0.0; n];
+    if logp.logp(&z0, &mut g).is_err() {
+        return vec![None; logp.blocks.len()];
+    }
+    // A thousandth of the guide's sd: small against the narrowest width met (1/135 of it), large
+    // against the gradient's rounding.
+    let h = 1e-3;
+    let spans: Vec<(usize, usize)> = logp.blocks.iter().map(|b| (b.offset, b.m.len())).collect();
+    spans
+        .into_iter()
+        .map(|(o, d)| {
+            let mut hm = DMatrix::<f64>::zeros(d, d);
+            let (mut ga, mut gb) = (vec![0.0; n], vec![0.0; n]);
+            for k in 0..d {
+                let (mut a, mut b) = (z0.clone(), z0.clone());
+                a[o + k] += h;
+                b[o + k] -= h;
+                logp.logp(&a, &mut ga).ok()?;
+                logp.logp(&b, &mut gb).ok()?;
+                for r in 0..d {
+                    hm[(r, k)] = -(ga[o + r] - gb[o + r]) / (2.0 * h);
+                }
+            }
+            let hs = (&hm + hm.transpose()) * 0.5;
+            hs.iter().all(|v| v.is_finite()).then_some(hs)
+        })
+        .collect()
 }
 
 /// The guide's sd of each of `logp`'s coordinates before its scales (the kinodynamic blocks'
@@ -663,10 +744,20 @@ fn run_chains<S: Settings>(settings: S, job: &Job<'_>, diagnose: &Diagnose<'_>) 
     let most = cfg.max_draws.max(round);
     // One preconditioner and one centring for all chains: they depend on the guide only.
     let blocks = preconditioner(&Density::new(ev, model, structure.clone()), guide, model, cfg.shear);
-    let blocks = blocks.as_slice();
     // `non_centred` overrides `partial_centring`.
     let centring = (cfg.partial_centring && !cfg.non_centred).then(|| centring_from_guide(&Density::new(ev, model, structure.clone()), guide, model));
     let centring = centring.as_deref();
+    let blocks = if cfg.block_curvature && !blocks.is_empty() {
+        let density = Density::new(ev, model, structure.clone());
+        let mean = guide_point(&density, guide, || 0.0);
+        let scale = vec![1.0; density.dim()];
+        let mut logp = Logp { blocks, density: coordinates(density, centring, cfg.non_centred), scale };
+        block_curvature(&mut logp, &mean);
+        logp.blocks
+    } else {
+        blocks
+    };
+    let blocks = blocks.as_slice();
     std::thread::scope(|scope| {
         let (tx, rx) = mpsc::channel::<(usize, Result<Round, String>)>();
         let mut commands = Vec::with_capacity(chains);
@@ -1216,4 +1307,35 @@ mod tests {
             assert!((fd - g[k]).abs() < 1e-6 * (1.0 + fd.abs()), "coordinate {k}: {} vs {fd}", g[k]);
         }
     }
+
+    /// On `adroit_door` (a latch hinged on a door; dynamic mode, partially non-centred as the
+    /// sampler runs it), SVI's Laplace covariance of a kinodynamic block is far wider than the
+    /// sampled coordinates' curvature at the guide's mean; after [`block_curvature`] no block's
+    /// Hessian there has an eigenvalue much above 1 (the guide's width or narrower).
+    #[test]
+    fn block_curvature_narrows_blocks_to_the_sampled_curvature() {
+        let cfg = crate::config::Config::new();
+        let run = crate::pipeline::replay(&[std::path::PathBuf::from("bags/mujoco/adroit_door.mcap")], &cfg).expect("replay");
+        let ev = crate::pipeline::final_evidence(&run, &cfg);
+        let fitted = super::super::svi::fit(&ev, &cfg.model, &cfg.inference, None).expect("a fit");
+        let joints = &fitted.posterior.joints;
+        let structure = Structure { parent: joints.iter().map(|j| j.parent_index).collect(), types: joints.iter().map(|j| j.map_type).collect() };
+        let (model, guide) = (&cfg.model, &fitted.guide);
+        let density = Density::new(&ev, model, structure.clone());
+        let blocks = preconditioner(&density, guide, model, true);
+        let centring = centring_from_guide(&density, guide, model);
+        let mean = guide_point(&density, guide, || 0.0);
+        let scale = vec![1.0; density.dim()];
+        let mut logp = Logp { blocks, density: coordinates(density, Some(&centring), false), scale };
+        assert!(logp.blocks.len() >= 2, "the door's and the latch's blocks");
+        let largest = |logp: &mut Logp<'_>| -> Vec<f64> {
+            block_hessians(logp, &mean).into_iter().map(|h| h.expect("a finite Hessian").symmetric_eigen().eigenvalues.max()).collect()
+        };
+        let before = largest(&mut logp);
+        assert!(before.iter().any(|&v| v > 100.0), "a block far narrower than the guide's: {before:?}");
+        block_curvature(&mut logp, &mean);
+        let after = largest(&mut logp);
+        assert!(after.iter().all(|&v| v < 1.2), "largest eigenvalues before {before:?}, after {after:?}");
+    }
 }
+
