@@ -252,8 +252,8 @@ impl LogpError for NonFinite {
 /// Laplace fits: each part's kinodynamic block is `xi = m + L z` with `m` and `L L^T` the
 /// guide's mean and covariance of it (with `nuts.block_curvature`, narrowed to the sampled
 /// coordinates' curvature at the guide's mean: [`block_curvature`]), and the sampler moves `z`
-/// (a constant linear map, so no Jacobian term); with `nuts.shear`, `m + L z` is the sheared block of [`Block`], which bends
-/// this map along the ridge. Why: damping and friction trade off along a long, narrow ridge (a
+/// (a constant linear map, so no Jacobian term); with `nuts.shear`, `m + L z` is the sheared
+/// block of [`Block`], which bends this map along the ridge. Why: damping and friction trade off along a long, narrow ridge (a
 /// push moves as far with more damping and less friction); with the diagonal mass matrix nuts-rs
 /// adapts, the step size shrank to the ridge's width and the drawer bag's damping had a bulk ESS
 /// of 4 from 400 draws (step size 0.13-0.18), the other parameters 200-400. A dense mass matrix
@@ -549,9 +549,9 @@ fn preconditioner(density: &Density<'_>, guide: &GuideState, model: &ModelConfig
 /// block given the *centred* coordinates; in the (partially) non-centred coordinates the sampler
 /// moves, a part's damping and mass also move the trajectory `Psi` of every non-centred
 /// coordinate (`q = Psi + sigma_d u`), so the observations pin them there. On `adroit_door`'s
-/// latch the damping-mass direction was 1.8e4 times stiffer than the guide's (conditional sd
-/// 1/135 of it); the warm-up's step size fell to 0.002-0.013 and 200 warm-up draws took 570-620 s
-/// (README, "Stop 116"). Narrow only: a direction flatter than the guide keeps the guide's width,
+/// latch, along its damping and mass, the block's Hessian at the guide's mean had an eigenvalue
+/// of 2.95e4 (a conditional sd 1/170 of the guide's); the warm-up's step size fell to
+/// 0.002-0.013 and 200 warm-up draws took 570-620 s (README, "Stop 116"). Narrow only: a direction flatter than the guide keeps the guide's width,
 /// and the adapted mass matrix widens it where the draws need. A block whose Hessian is not
 /// finite, or whose new covariance has no Cholesky factor, is left as it was. A constant linear
 /// map of the sampler's coordinates: no Jacobian, the posterior is the same.
@@ -573,9 +573,8 @@ fn block_curvature(logp: &mut Logp<'_>, x: &[f64]) {
 
 /// The Hessian of `-log p` over each of `logp`'s kinodynamic blocks in its sampler coordinates
 /// (the blocks' `z` divided by `logp.scale`; [`run_chains`] narrows with all scales 1) at model
-/// coordinates `x`, by central differences of the
-/// gradient, all at the same point; none for a block where the density or the Hessian is not
-/// finite. `2 d` gradients a block of `d`.
+/// coordinates `x`, by central differences of the gradient, all at the same point; none for a
+/// block where the density or the Hessian is not finite. `2 d` gradients a block of `d`.
 fn block_hessians(logp: &mut Logp<'_>, x: &[f64]) -> Vec<Option<DMatrix<f64>>> {
     let z0 = logp.to_sampler(&logp.density.from_model(x));
     let n = z0.len();
@@ -583,7 +582,7 @@ fn block_hessians(logp: &mut Logp<'_>, x: &[f64]) -> Vec<Option<DMatrix<f64>>> {
     if logp.logp(&z0, &mut g).is_err() {
         return vec![None; logp.blocks.len()];
     }
-    // A thousandth of the guide's sd: small against the narrowest width met (1/135 of it), large
+    // A thousandth of the guide's sd: small against the narrowest width met (1/170 of it), large
     // against the gradient's rounding.
     let h = 1e-3;
     let spans: Vec<(usize, usize)> = logp.blocks.iter().map(|b| (b.offset, b.m.len())).collect();
@@ -1338,4 +1337,3 @@ mod tests {
         assert!(after.iter().all(|&v| v < 1.2), "largest eigenvalues before {before:?}, after {after:?}");
     }
 }
-
