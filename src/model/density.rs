@@ -1015,7 +1015,9 @@ impl<'a> Density<'a> {
             grad[idx] += d / FD_STEP;
             xp[idx] = x[idx];
         }
-        // Another part's coordinate at a window's first frame: that window's term only.
+        // Another part's coordinate at a window's first frame: that window's term only. Each
+        // (part, window) base value once, however many coordinates move it.
+        let mut window_base: Vec<Vec<Option<f64>>> = vec![vec![None; self.ev.windows.len()]; n];
         for (j, idx, w, parts) in coordinate_cross_differences(self.ev, parent, &self.slots) {
             xp[idx] = x[idx] + FD_STEP;
             let pv: Vec<PartValue<'_>> = (0..n)
@@ -1028,7 +1030,11 @@ impl<'a> Density<'a> {
                 })
                 .collect();
             let tr = part_transforms(parent, &pv, frames);
-            let d: f64 = parts.iter().map(|&i| self.part_window_value(i, w, &pv, &tr) - self.part_window_value(i, w, values, transforms)).sum();
+            let mut d = 0.0;
+            for &i in &parts {
+                let b = *window_base[i][w].get_or_insert_with(|| self.part_window_value(i, w, values, transforms));
+                d += self.part_window_value(i, w, &pv, &tr) - b;
+            }
             grad[idx] += d / FD_STEP;
             xp[idx] = x[idx];
         }
@@ -1570,17 +1576,25 @@ impl<'a> NonCentred<'a> {
                 (!parts.is_empty()).then_some((j, idx, parts))
             })
             .collect();
+        let coordinates: Vec<(usize, usize, Vec<usize>)> = coordinate_cross_differences(d.ev, parent, &d.slots)
+            .into_iter()
+            .filter_map(|(_, idx, w, parts)| {
+                let parts: Vec<usize> = parts.into_iter().filter(|i| with_frames.contains(i)).collect();
+                (!parts.is_empty()).then_some((idx, w, parts))
+            })
+            .collect();
+        if cross.is_empty() && coordinates.is_empty() {
+            return lp;
+        }
+        // The differences' base, from the same `f64` path as the perturbed ones, once for both.
+        let base = self.simulate(y, &params, &with_frames, false, None);
         let mut yp = y.to_vec();
         // Another part's coordinate at a window's first frame moves that window's `Psi`
         // ([`coordinate_cross_differences`]; the coordinate is the model's there: a window's first
         // frame is never mapped).
-        for (_, idx, w, parts) in coordinate_cross_differences(d.ev, parent, &d.slots) {
-            let parts: Vec<usize> = parts.into_iter().filter(|i| with_frames.contains(i)).collect();
-            if parts.is_empty() {
-                continue;
-            }
+        for (idx, w, parts) in coordinates {
             yp[idx] = y[idx] + FD_STEP;
-            let (base, moved) = (self.simulate(y, &params, &parts, false, Some(w)), self.simulate(&yp, &params, &parts, false, Some(w)));
+            let moved = self.simulate(&yp, &params, &parts, false, Some(w));
             let mut acc = 0.0;
             for &i in &parts {
                 let (Some(a), Some(b), Some(o)) = (&base[i], &moved[i], d.slots[i].q) else { continue };
@@ -1592,11 +1606,6 @@ impl<'a> NonCentred<'a> {
             grad[idx] += acc / FD_STEP;
             yp[idx] = y[idx];
         }
-        if cross.is_empty() {
-            return lp;
-        }
-        // The differences' base, from the same `f64` path as the perturbed ones.
-        let base = self.simulate(y, &params, &with_frames, false, None);
         for (j, idx, parts) in cross {
             yp[idx] = y[idx] + FD_STEP;
             let mut pp = params.clone();
