@@ -409,6 +409,8 @@ struct PartState {
     com: Vector3<f64>,
     rotation: UnitQuaternion<f64>,
     unit_inertia: Matrix3<f64>,
+    /// Where its weight acts ([`crate::model::dynamics::JointInWindow::weight_com`]).
+    weight_com: Vector3<f64>,
     /// Observed centres of mass over the state window, `(stamp, com)`.
     recent: Vec<(f64, Vector3<f64>)>,
 }
@@ -493,7 +495,8 @@ fn part_state(scene: &Scene<'_>, label: u32, from: f64, window: f64) -> Option<P
     let recent: Vec<(f64, Vector3<f64>)> = obs[lo..hi].iter().map(|o| (o.stamp, com(o))).collect();
     let r = last.pose.rotation.to_rotation_matrix();
     let start = smoothed(&recent, from).unwrap_or_else(|| com(last));
-    Some(PartState { com: start, rotation: last.pose.rotation, unit_inertia: r.matrix() * g.unit_inertia * r.matrix().transpose(), recent })
+    let weight_com = start + r * (g.centroid - g.com);
+    Some(PartState { com: start, rotation: last.pose.rotation, unit_inertia: r.matrix() * g.unit_inertia * r.matrix().transpose(), weight_com, recent })
 }
 
 /// Part indices with every parent before its children (a parent outside the model, or a cycle,
@@ -700,9 +703,10 @@ impl<'a> Simulation<'a> {
                     mass: if drawn[m].joint.movable() { drawn[m].mass } else { self.model.joints[m].mass.map_or(dyncfg.mass_median_kg, |x| x.median) },
                     com: self.states[m].com,
                     unit_inertia: self.states[m].unit_inertia,
+                    weight_com: self.states[m].weight_com,
                 })
                 .collect();
-            let jw = JointInWindow { joint: p, com: s.com, unit_inertia: s.unit_inertia, subtree, pushed: (0..self.steps).any(mask), effects };
+            let jw = JointInWindow { joint: p, com: s.com, unit_inertia: s.unit_inertia, weight_com: s.weight_com, subtree, pushed: (0..self.steps).any(mask), effects };
             let v0 = velocity(p, &s.recent);
             q[i] = if d.kinematic {
                 (0..self.steps).map(|k| v0 * k as f64 * self.h).collect()

@@ -218,6 +218,7 @@ pub fn criticise(ev: &Evidence, post: &Posterior, adopted: &BTreeMap<u32, Effect
                 ]),
                 EffectKind::JointLimit => {}
                 k if current.kinds().contains(&k) => {}
+                EffectKind::Gravity if !gravity_resolvable(post.joints[i].axis.as_ref(), dyncfg) => {}
                 _ => variants.push((kind, None)),
             }
         }
@@ -243,7 +244,7 @@ pub fn criticise(ev: &Evidence, post: &Posterior, adopted: &BTreeMap<u32, Effect
         // leaves the spring's pull). One pair per two kinds that each gain decisively alone, the
         // stop on the sides its best single fit found, started where the two single fits ended
         // (the singles have searched their own starts).
-        let pairs = pairs_of(&tried, base.elbo + cfg.decisive_nats);
+        let pairs = with_resting_stops(pairs_of(&tried, base.elbo + cfg.decisive_nats), &tried);
         let fitted: Vec<(usize, usize, Candidate)> = parallel::map(parallel::resolve_threads(0), pairs.len(), |j| {
             let (a, b) = pairs[j];
             let ((ka, ca), (kb, cb)) = (&tried[a], &tried[b]);
@@ -318,6 +319,28 @@ pub fn criticise(ev: &Evidence, post: &Posterior, adopted: &BTreeMap<u32, Effect
     out
 }
 
+/// Whether gravity's force on a joint with `axis` can be told from none: the weight's moment
+/// about a revolute axis is `m g sin(tilt)` times a lever arm, its force along a prismatic one
+/// `m g sin(incline)`, so where the axis's 90% cone (`direction_q90_deg`, the spread the posterior
+/// reports) holds the vertical (revolute) or a horizontal direction (prismatic), the data cannot
+/// tell gravity's force from zero, its size rests on the mass alone, and what a gravity candidate
+/// explains is a misfit of the base model (README, issue 25, stop 117: two doors on vertical
+/// hinges, 0.2 and 2.9 degrees from vertical, got gravity). False without an axis.
+fn gravity_resolvable(axis: Option<&crate::inference::AxisSummary>, dyncfg: &DynamicsConfig) -> bool {
+    let Some(a) = axis else { return false };
+    let g = nalgebra::Vector3::from(dyncfg.effects.gravity);
+    if g.norm() == 0.0 {
+        return false;
+    }
+    let from_vertical = (a.direction.dot(&g).abs() / (a.direction.norm() * g.norm())).min(1.0).acos().to_degrees();
+    let off = match a.joint {
+        JointType::Revolute => from_vertical,
+        JointType::Prismatic => 90.0 - from_vertical,
+        JointType::Rigid => return false,
+    };
+    off > a.direction_q90_deg
+}
+
 /// The pairs of single-effect candidates in `tried` (indices) that a two-effect candidate joins:
 /// one per two kinds whose single candidates reach an ELBO of `least`, the joint limit
 /// represented by its variant (sides) with the highest ELBO.
@@ -337,6 +360,20 @@ fn pairs_of(tried: &[(EffectKind, Candidate)], least: f64) -> Vec<(usize, usize)
         }
     }
     out
+}
+
+/// `pairs` and gravity with each stop variant in `tried`: a part that gravity holds against its
+/// stop (a tilted door shut, a flap down) is explained by neither alone — under gravity alone the
+/// model lets it fall through the stop, and the stop alone does not pull it back after a push —
+/// so that pair cannot wait for both singles to gain.
+fn with_resting_stops(mut pairs: Vec<(usize, usize)>, tried: &[(EffectKind, Candidate)]) -> Vec<(usize, usize)> {
+    let Some(g) = tried.iter().position(|(k, _)| *k == EffectKind::Gravity) else { return pairs };
+    for (s, _) in tried.iter().enumerate().filter(|(_, (k, _))| *k == EffectKind::JointLimit) {
+        if !pairs.iter().any(|&(a, b)| (a, b) == (g, s) || (a, b) == (s, g)) {
+            pairs.push((g, s));
+        }
+    }
+    pairs
 }
 
 /// Starts for the two-effect candidate `effects` joined from the single fits `a` and `b` (each
@@ -461,8 +498,30 @@ fn candidate_from(series: &JointSeries, times: &[f64], effects: EffectSet, base:
     let mut post = |x: &[f64]| series.log_posterior(x, effects, &all, dyncfg);
     let mut fit: Option<LaplaceFit> = None;
     let own = if own_starts { effect_starts(&effects) } else { Vec::new() };
-    let starts = own.into_iter().map(|s| base[..4].iter().copied().chain(s).collect::<Vec<f64>>());
-    for mut x in starts.chain(extra.iter().cloned()) {
+    let mut starts: Vec<Vec<f64>> = own.into_iter().map(|s| base[..4].iter().copied().chain(s).collect()).chain(extra.iter().cloned()).collect();
+    if effects.gravity {
+        // Gravity's size is the mass's, which the base model fitted without it (a door held shut
+        // by its weight is fitted light and its fall back put down to friction): the first start
+        // is also tried with the mass at its prior median and one and two prior sds either side
+        // (a factor of 4.5 and 20 with the default log-sd of 1.5).
+        let first = starts.first().cloned();
+        starts.extend(first.into_iter().flat_map(|x| {
+            [-2.0, -1.0, 0.0, 1.0, 2.0].map(|m| {
+                let mut y = x.clone();
+                y[2] = m;
+                y
+            })
+        }));
+    }
+    // One fit per distinct start (a gravity candidate's own starts coincide: it has no
+    // parameters of its own).
+    let mut distinct: Vec<Vec<f64>> = Vec::new();
+    for x in starts {
+        if !distinct.contains(&x) {
+            distinct.push(x);
+        }
+    }
+    for mut x in distinct {
         coarse_grid(&mut post, &mut x);
         let f = LaplaceFit::fit(&mut post, x);
         if fit.as_ref().is_none_or(|b| f.log_density > b.log_density) {
@@ -697,5 +756,60 @@ mod tests {
         // The spring's fit with the stops switched off (2 prior sds beyond their anchors, soft).
         assert_eq!(starts[1], vec![1.5, 2.5, 3.5, 4.5, -1.0, 0.3, -2.0, 2.0, -2.0]);
         assert!(starts.iter().all(|x| x.len() == 4 + pair.num_params()));
+    }
+
+    #[test]
+    fn gravity_is_paired_with_every_stop_it_may_rest_on() {
+        let none = EffectSet::default();
+        let upper = Some(LimitSpec { lower: None, upper: Some(0.2) });
+        let both = Some(LimitSpec { lower: Some(-0.1), upper: Some(0.2) });
+        let tried = vec![
+            (EffectKind::JointLimit, single(none.with(EffectKind::JointLimit, upper), vec![0.0; 6], 10.0)),
+            (EffectKind::Spring, single(none.with(EffectKind::Spring, None), vec![0.0; 6], 30.0)),
+            (EffectKind::JointLimit, single(none.with(EffectKind::JointLimit, both), vec![0.0; 7], 20.0)),
+            (EffectKind::Gravity, single(none.with(EffectKind::Gravity, None), vec![0.0; 4], 5.0)),
+        ];
+        // Neither gravity nor a stop gains alone (a door held shut by its weight), yet gravity
+        // meets each stop variant once.
+        assert_eq!(with_resting_stops(pairs_of(&tried, 25.0), &tried), vec![(3, 0), (3, 2)]);
+        // A pair the singles' gains already formed is not repeated.
+        assert_eq!(with_resting_stops(pairs_of(&tried, f64::NEG_INFINITY), &tried), vec![(2, 1), (2, 3), (1, 3), (3, 0)]);
+        // Without a gravity candidate (the joint has it already) nothing is added.
+        assert_eq!(with_resting_stops(pairs_of(&tried[..3], 8.0), &tried[..3]), vec![(2, 1)]);
+    }
+
+    #[test]
+    fn gravity_is_a_candidate_only_where_the_axis_is_resolvably_off_its_neutral_direction() {
+        use crate::inference::AxisSummary;
+        use nalgebra::Vector3;
+        let cfg = DynamicsConfig::default();
+        // An axis `deg` from the vertical, with a 90% cone of `q90` degrees.
+        let axis = |joint: JointType, deg: f64, q90: f64| AxisSummary {
+            joint,
+            direction: Vector3::new(deg.to_radians().sin(), 0.0, deg.to_radians().cos()),
+            direction_sd_deg: q90 / 1.6,
+            direction_q90_deg: q90,
+            point: None,
+            point_sd_m: f64::NAN,
+            inflation: 1.0,
+            discrepancy_deg: 0.0,
+            posterior_sd_deg: q90 / 1.6,
+            posterior_q90_deg: q90,
+            point_discrepancy_m: 0.0,
+            point_posterior_sd_m: f64::NAN,
+        };
+        let resolvable = |joint, deg, q90| gravity_resolvable(Some(&axis(joint, deg, q90)), &cfg);
+        // A door's hinge 2.9 degrees from vertical inside a 3.7-degree cone: gravity's moment
+        // cannot be told from none; tilted 7.9 degrees it can, and a lid's level hinge always.
+        assert!(!resolvable(JointType::Revolute, 2.9, 3.7));
+        assert!(!resolvable(JointType::Revolute, 180.0 - 0.2, 3.7));
+        assert!(resolvable(JointType::Revolute, 7.9, 3.7));
+        assert!(resolvable(JointType::Revolute, 90.0, 3.7));
+        // A level drawer no; on a 10.8-degree slope, or a vertical slide, yes.
+        assert!(!resolvable(JointType::Prismatic, 88.0, 3.7));
+        assert!(resolvable(JointType::Prismatic, 90.0 - 10.8, 3.7));
+        assert!(resolvable(JointType::Prismatic, 0.0, 3.7));
+        assert!(!resolvable(JointType::Rigid, 45.0, 3.7));
+        assert!(!gravity_resolvable(None, &cfg));
     }
 }

@@ -36,6 +36,8 @@ pub struct JointWindow {
     pub index: usize,
     pub joint: JointParams<f64>,
     pub com: Vector3<f64>,
+    /// Where the child's weight acts ([`JointInWindow::weight_com`]).
+    pub weight_com: Vector3<f64>,
     pub unit_inertia: Matrix3<f64>,
     pub subtree: Vec<SubtreeBody>,
     pub pushed: bool,
@@ -124,6 +126,7 @@ impl JointSeries {
                             mass: jm.kinodynamics.map_or(cfg.mass_median_kg, |kd| kd.mass.median),
                             com: transforms[m][f0].apply(&jm.mean_params[jm.map_type.index()].com),
                             unit_inertia: rotate(&transforms[m][f0], &ev.parts[m].unit_inertia),
+                            weight_com: transforms[m][f0].apply(&(jm.mean_params[jm.map_type.index()].com + ev.parts[m].weight_offset)),
                         }
                     })
                     .collect();
@@ -131,6 +134,7 @@ impl JointSeries {
                     index: w,
                     joint,
                     com: own.apply(&params.com),
+                    weight_com: own.apply(&(params.com + ev.parts[i].weight_offset)),
                     unit_inertia: rotate(&own, &ev.parts[i].unit_inertia),
                     subtree,
                     pushed: win.pushed.is_some_and(|p| p == i || desc.contains(&p)),
@@ -147,7 +151,7 @@ impl JointSeries {
     /// The physics' view of window `w` (index into `self.windows`) with `effects`.
     pub fn joint_in_window(&self, w: usize, effects: EffectSet) -> JointInWindow<'_> {
         let jw = &self.windows[w];
-        JointInWindow { joint: &jw.joint, com: jw.com, unit_inertia: jw.unit_inertia, subtree: jw.subtree.clone(), pushed: jw.pushed, effects }
+        JointInWindow { joint: &jw.joint, com: jw.com, unit_inertia: jw.unit_inertia, weight_com: jw.weight_com, subtree: jw.subtree.clone(), pushed: jw.pushed, effects }
     }
 
     /// Log posterior density of the standardised kinodynamic parameters `xi` given the windows

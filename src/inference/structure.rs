@@ -298,7 +298,7 @@ mod tests {
                 obs.push(Some(PositionObs { y: com0 + shift + e, basis: Matrix3::identity(), var: Vector3::repeat(sd * sd) }));
                 disp.push(Some(Isometry3::from_parts(Translation3::from(shift + e), UnitQuaternion::identity())));
             }
-            PartSeries { label, com0, obs, rot: vec![None; k], disp, contact: vec![], radius: 0.1, reach: 0.0, unit_inertia: Matrix3::identity() * 0.01, volume: 0.001 }
+            PartSeries { label, com0, obs, rot: vec![None; k], disp, contact: vec![], radius: 0.1, reach: 0.0, unit_inertia: Matrix3::identity() * 0.01, volume: 0.001, weight_offset: Vector3::zeros() }
         };
         let carrier = part(1, Vector3::new(0.0, 0.0, 0.5), 0.005, &mut rng);
         let load = part(2, Vector3::new(0.0, 0.0, 0.8), 0.001, &mut rng);

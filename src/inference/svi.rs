@@ -1753,6 +1753,7 @@ mod tests {
                 reach: 0.02,
                 unit_inertia: Matrix3::identity() * 0.01,
                 volume: 0.001,
+                weight_offset: Vector3::zeros(),
             }],
             contact: vec![vec![0.0]],
             windows: vec![],
@@ -1833,6 +1834,7 @@ mod tests {
             reach: 0.1,
             unit_inertia: Matrix3::identity() * 0.01,
             volume: 0.001,
+            weight_offset: Vector3::zeros(),
         };
         let evidence = |windows: Vec<WindowEvidence>, parts: Vec<PartSeries>| Evidence {
             times: (0..k).map(|t| t as f64 * 0.2).collect(),

@@ -602,15 +602,16 @@ fn simulate_kinematic_n<const N: usize>(args: KinematicArgs<'_, '_>, kp: &dynami
     let carried = |u: &Matrix3<f64>| mat_mul(&mat_mul(&own.r, u), &own.r.transpose());
     // The subtree relative to the part at the window's start, then carried by `own`.
     let to_part = inverse(&transforms[i][f0]);
-    let subtree = desc
+    let (subtree, subtree_weight): (Vec<_>, Vec<_>) = desc
         .iter()
         .zip(&jw.subtree)
         .map(|(&m, body)| {
             let rel = to_part.compose(&transforms[m][f0]);
             let u = rel.r * ev.parts[m].unit_inertia * rel.r.transpose();
-            (Dn::<N>::from(body.mass), own.apply_const(&rel.apply(&chosen[m].params.com)), carried(&u))
+            let weight = own.apply_const(&rel.apply(&(chosen[m].params.com + ev.parts[m].weight_offset)));
+            ((Dn::<N>::from(body.mass), own.apply_const(&rel.apply(&chosen[m].params.com)), carried(&u)), weight)
         })
-        .collect();
+        .unzip();
     let geom = dynamics::WindowGeometry {
         direction: rot(&pre[f0].r, &p.direction),
         point: rot(&pre[f0].r, &p.point) + pre[f0].t.map(Dn::<N>::from),
@@ -618,6 +619,8 @@ fn simulate_kinematic_n<const N: usize>(args: KinematicArgs<'_, '_>, kp: &dynami
         com: own.apply(&p.com),
         unit_inertia: carried(&ev.parts[i].unit_inertia),
         subtree,
+        weight_com: own.apply(&(p.com + ev.parts[i].weight_offset.map(Dn::<N>::from))),
+        subtree_weight,
     };
     let traj = dynamics::simulate_joint_in(jw, &geom, win, q0, Dn::<N>::from(0.0), kp, &model.dynamics);
     (0..win.frames.len()).map(|k| dynamics::psi_at(traj.as_ref(), win, k, q0)).collect()
@@ -655,10 +658,12 @@ pub fn window_joint(
                 .unwrap_or(dyncfg.mass_median_kg),
             com: transforms[m][f0].apply(&chosen[m].params.com),
             unit_inertia: rotate(&transforms[m][f0], &ev.parts[m].unit_inertia),
+            weight_com: transforms[m][f0].apply(&(chosen[m].params.com + ev.parts[m].weight_offset)),
         })
         .collect();
     WindowJoint {
         com: own.apply(&s.params.com),
+        weight_com: own.apply(&(s.params.com + ev.parts[i].weight_offset)),
         unit_inertia: rotate(&own, &ev.parts[i].unit_inertia),
         joint,
         subtree,
@@ -671,6 +676,8 @@ pub fn window_joint(
 pub struct WindowJoint {
     pub joint: JointParams<f64>,
     pub com: Vector3<f64>,
+    /// Where the child's weight acts ([`JointInWindow::weight_com`]).
+    pub weight_com: Vector3<f64>,
     pub unit_inertia: Matrix3<f64>,
     pub subtree: Vec<SubtreeBody>,
     pub pushed: bool,
@@ -679,7 +686,7 @@ pub struct WindowJoint {
 impl WindowJoint {
     /// The physics' view, with the joint's `effects`.
     pub fn view(&self, effects: EffectSet) -> JointInWindow<'_> {
-        JointInWindow { joint: &self.joint, com: self.com, unit_inertia: self.unit_inertia, subtree: self.subtree.clone(), pushed: self.pushed, effects }
+        JointInWindow { joint: &self.joint, com: self.com, unit_inertia: self.unit_inertia, weight_com: self.weight_com, subtree: self.subtree.clone(), pushed: self.pushed, effects }
     }
 }
 

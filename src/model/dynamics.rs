@@ -206,6 +206,8 @@ pub struct SubtreeBody {
     pub mass: f64,
     pub com: Vector3<f64>,
     pub unit_inertia: Matrix3<f64>,
+    /// Where its weight acts \[m\] (the gravity effect's; see [`JointInWindow::weight_com`]).
+    pub weight_com: Vector3<f64>,
 }
 
 /// One joint in one window, as the physics sees it (fixed frame, at the window's start).
@@ -216,6 +218,11 @@ pub struct JointInWindow<'a> {
     /// The child part at the window's start: centre of mass and inertia per kilogram.
     pub com: Vector3<f64>,
     pub unit_inertia: Matrix3<f64>,
+    /// Where the child's weight acts \[m\], fixed frame, at the window's start: the centre of
+    /// its seen surface ([`crate::model::likelihood::PartSeries::weight_offset`]), which the
+    /// gravity effect's moment uses in place of `com` (a thin panel's hull centroid can lie
+    /// decimetres off the panel; README, issue 25, stop 117).
+    pub weight_com: Vector3<f64>,
     /// The other bodies of the joint's subtree (locked).
     pub subtree: Vec<SubtreeBody>,
     /// Whether the wrench of this window acts on the joint's subtree.
@@ -415,6 +422,10 @@ pub struct WindowGeometry<T: Real> {
     pub unit_inertia: Matrix3<T>,
     /// The locked subtree's bodies: mass \[kg\], centre of mass, inertia per kilogram.
     pub subtree: Vec<(T, Vector3<T>, Matrix3<T>)>,
+    /// Where the child's and each subtree body's weight acts \[m\] (the gravity effect's;
+    /// [`JointInWindow::weight_com`]), the subtree's in `subtree`'s order.
+    pub weight_com: Vector3<T>,
+    pub subtree_weight: Vec<Vector3<T>>,
 }
 
 impl<T: Real> WindowGeometry<T> {
@@ -428,6 +439,8 @@ impl<T: Real> WindowGeometry<T> {
             com: jw.com.map(T::from),
             unit_inertia: jw.unit_inertia.map(T::from),
             subtree: jw.subtree.iter().map(|b| (T::from(b.mass), b.com.map(T::from), b.unit_inertia.map(T::from))).collect(),
+            weight_com: jw.weight_com.map(T::from),
+            subtree_weight: jw.subtree.iter().map(|b| b.weight_com.map(T::from)).collect(),
         }
     }
 }
@@ -522,16 +535,18 @@ fn simulate_scaled<T: Real>(
     if jw.effects.gravity {
         let g = Vector3::from(cfg.effects.gravity).map(T::from);
         jd.gravity_at = scale.to_joint(q0);
-        for (m, com, _) in &bodies {
+        // The weight acts at each body's weight centre, not at the hull centroid the inertia uses.
+        let weights = std::iter::once((kp.mass, &geom.weight_com)).chain(geom.subtree.iter().map(|b| b.0).zip(&geom.subtree_weight));
+        for (m, com) in weights {
             match kind {
                 JointKind::Revolute => {
                     // The weight's moment turns with the joint: r(a) = R(d, a) r_perp + r_par.
                     let r = com - point;
                     let perp = r - d * r.dot(d);
-                    jd.gravity[1] += *m * d.dot(&perp.cross(&g));
-                    jd.gravity[2] += *m * d.dot(&d.cross(&perp).cross(&g));
+                    jd.gravity[1] += m * d.dot(&perp.cross(&g));
+                    jd.gravity[2] += m * d.dot(&d.cross(&perp).cross(&g));
                 }
-                _ => jd.gravity[0] += *m * d.dot(&g),
+                _ => jd.gravity[0] += m * d.dot(&g),
             }
         }
     }
@@ -899,7 +914,7 @@ mod tests {
         let cfg = DynamicsConfig::default();
         let joint = door(Vector3::z());
         let unit_inertia = Matrix3::from_diagonal(&Vector3::new(0.01, 0.01, 0.02));
-        let jw = JointInWindow { joint: &joint, com: joint.com, unit_inertia, subtree: vec![], pushed: true, effects: EffectSet::default() };
+        let jw = JointInWindow { joint: &joint, com: joint.com, unit_inertia, weight_com: joint.com, subtree: vec![], pushed: true, effects: EffectSet::default() };
         let (win, q, truth) = simulated_push(&cfg, &joint, unit_inertia);
         let at = |dm: f64| window_prior(&jw, &win, &q, None, &[truth[0], truth[1], truth[2] + dm, -1.0], &cfg).0;
         let best = at(0.0);
@@ -916,7 +931,7 @@ mod tests {
         let cfg = DynamicsConfig::default();
         let joint = door(Vector3::z());
         let unit_inertia = Matrix3::from_diagonal(&Vector3::new(0.01, 0.01, 0.02));
-        let jw = JointInWindow { joint: &joint, com: joint.com, unit_inertia, subtree: vec![], pushed: true, effects: EffectSet::default() };
+        let jw = JointInWindow { joint: &joint, com: joint.com, unit_inertia, weight_com: joint.com, subtree: vec![], pushed: true, effects: EffectSet::default() };
         let (win, q, truth) = simulated_push(&cfg, &joint, unit_inertia);
         assert!(q[12] > 0.1, "the door turned: {q:?}");
         let at = |b: f64, mu: f64| window_prior(&jw, &win, &q, None, &[b, mu, truth[2], -1.0], &cfg).0;
@@ -945,7 +960,7 @@ mod tests {
         let cfg = DynamicsConfig { fit_window_start: true, ..DynamicsConfig::default() };
         let joint = door(Vector3::z());
         let unit_inertia = Matrix3::from_diagonal(&Vector3::new(0.01, 0.01, 0.02));
-        let jw = JointInWindow { joint: &joint, com: joint.com, unit_inertia, subtree: vec![], pushed: true, effects: EffectSet::default() };
+        let jw = JointInWindow { joint: &joint, com: joint.com, unit_inertia, weight_com: joint.com, subtree: vec![], pushed: true, effects: EffectSet::default() };
         let (win, mut q, truth) = simulated_push(&cfg, &joint, unit_inertia);
         q[0] += 0.004;
         let var: Vec<f64> = (0..q.len()).map(|t| (0.002 + 0.001 * (t % 3) as f64).powi(2)).collect();
@@ -978,7 +993,7 @@ mod tests {
             quadratic_damping: true,
         };
         let unit_inertia = Matrix3::from_diagonal(&Vector3::new(0.01, 0.01, 0.02));
-        let jw = JointInWindow { joint: &joint, com: joint.com, unit_inertia, subtree: vec![], pushed: true, effects };
+        let jw = JointInWindow { joint: &joint, com: joint.com, unit_inertia, weight_com: joint.com, subtree: vec![], pushed: true, effects };
         let win = push_window(&cfg, 8.0);
         let q: Vec<f64> = (0..13).map(|k| 0.01 * k as f64).collect();
         let xi: Vec<f64> = (0..num_params(&effects)).map(|j| 0.1 * ((j as f64) * 1.7).sin()).collect();
@@ -1003,7 +1018,7 @@ mod tests {
                 quadratic_damping: true,
             },
         ] {
-            let jw = JointInWindow { joint: &joint, com: joint.com, unit_inertia, subtree: vec![], pushed: true, effects };
+            let jw = JointInWindow { joint: &joint, com: joint.com, unit_inertia, weight_com: joint.com, subtree: vec![], pushed: true, effects };
             let win = push_window(&cfg, 8.0);
             let q: Vec<f64> = (0..13).map(|k| 0.01 * k as f64 + 0.002 * ((k as f64) * 2.3).sin()).collect();
             let xi: Vec<f64> = (0..num_params(&effects)).map(|j| 0.1 * ((j as f64) * 1.7).sin()).collect();
@@ -1028,7 +1043,7 @@ mod tests {
         let cfg = DynamicsConfig::default();
         let joint = door(Vector3::z());
         let unit_inertia = Matrix3::from_diagonal(&Vector3::new(0.01, 0.01, 0.02));
-        let jw = JointInWindow { joint: &joint, com: joint.com, unit_inertia, subtree: vec![], pushed: true, effects: EffectSet::default() };
+        let jw = JointInWindow { joint: &joint, com: joint.com, unit_inertia, weight_com: joint.com, subtree: vec![], pushed: true, effects: EffectSet::default() };
         let (win, q, truth) = simulated_push(&cfg, &joint, unit_inertia);
         let xi = [truth[0], truth[1], truth[2], -1.0];
         let v = crate::model::ModelConfig::default().velocity_sd_mps;
@@ -1077,7 +1092,7 @@ mod tests {
         let cfg = DynamicsConfig::default();
         let joint = door(Vector3::z());
         let unit_inertia = Matrix3::from_diagonal(&Vector3::new(0.01, 0.01, 0.02));
-        let jw = JointInWindow { joint: &joint, com: joint.com, unit_inertia, subtree: vec![], pushed: true, effects: EffectSet::default() };
+        let jw = JointInWindow { joint: &joint, com: joint.com, unit_inertia, weight_com: joint.com, subtree: vec![], pushed: true, effects: EffectSet::default() };
         let (win, q, truth) = simulated_push(&cfg, &joint, unit_inertia);
         let v = crate::model::ModelConfig::default().velocity_sd_mps;
         // The deviation scale where both components matter (sd 6.7 cm against a walk's 8.3 cm).

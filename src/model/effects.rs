@@ -6,7 +6,7 @@
 //! |---|---|---|
 //! | `spring` | `-k (q - rest)` | stiffness `k` (log-normal), rest position (normal around the reference configuration) |
 //! | `joint_limit` | `-k_c w softplus((q - q_lim) / w)` beyond an upper stop (mirrored for a lower one) | per stop (lower, upper or both) its position (normal around an anchor), one contact stiffness `k_c` (log-normal) |
-//! | `gravity` | the moment (force) of the subtree's weights about (along) the axis | none: the fixed frame's gravity vector and the part's mass and centre of mass, already latent |
+//! | `gravity` | the moment (force) of the subtree's weights about (along) the axis, each acting at the centre of its part's seen surface ([`crate::model::dynamics::JointInWindow::weight_com`]) | none: the fixed frame's gravity vector and the part's mass, already latent |
 //! | `quadratic_damping` | `-c q' \|q'\|`: the drag of a fluid or a soft-close damper | coefficient `c` (log-normal) |
 //!
 //! Parameters are standardised like the base kinodynamic ones (paper §3.2: `xi ~ N(0, 1)` mapped

@@ -92,6 +92,11 @@ pub struct PartSeries {
     /// configuration; and the hull volume (m³, 0 when flat).
     pub unit_inertia: Matrix3<f64>,
     pub volume: f64,
+    /// Where the part's weight acts, from `com0` \[m\], fixed frame, reference configuration:
+    /// the mean of perception's model points less the hull centroid
+    /// ([`crate::perception::PartGeometry::centroid`]); zero when unknown. Only the gravity
+    /// effect uses it; the tracked point, the inertia and the path coordinate stay at `com0`.
+    pub weight_offset: Vector3<f64>,
 }
 
 impl PartSeries {
@@ -359,6 +364,7 @@ impl Evidence {
                 reach: extent,
                 unit_inertia: geo.unit_inertia,
                 volume: geo.volume,
+                weight_offset: geo.centroid - geo.com,
             });
         }
         let disps: Vec<&[Option<Isometry3<f64>>]> = parts.iter().map(|p: &PartSeries| p.disp.as_slice()).collect();
@@ -772,6 +778,7 @@ mod tests {
             reach: 0.1,
             unit_inertia: Matrix3::identity(),
             volume: 0.0,
+            weight_offset: Vector3::zeros(),
         };
         let material = Vector3::new(0.3, 0.05, 0.1);
         let at = |t: usize| pose(t) * nalgebra::Point3::from(material);
