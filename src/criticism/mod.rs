@@ -39,7 +39,7 @@ use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
 
-use crate::inference::laplace::{coarse_grid, deviation_inflation, inflated, mode, LaplaceFit};
+use crate::inference::laplace::{coarse_grid_or_start, deviation_inflation, inflated, mode, LaplaceFit};
 use crate::inference::Posterior;
 use crate::model::dynamics::{self, DynamicsConfig};
 use crate::model::effects::{EffectKind, EffectSet, LimitSpec};
@@ -522,7 +522,9 @@ fn candidate_from(series: &JointSeries, times: &[f64], effects: EffectSet, base:
         }
     }
     for mut x in distinct {
-        coarse_grid(&mut post, &mut x);
+        // The grid only where it beats the start: a start that carries a converged fit's damping
+        // and friction (a pair joined from its singles) keeps them (README, issue 25, stop 118).
+        coarse_grid_or_start(&mut post, &mut x);
         let f = LaplaceFit::fit(&mut post, x);
         if fit.as_ref().is_none_or(|b| f.log_density > b.log_density) {
             fit = Some(f);

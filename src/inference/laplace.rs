@@ -40,6 +40,17 @@ pub fn coarse_grid(post: &mut LogDensity<'_>, x: &mut [f64]) {
     (x[0], x[1]) = (best.1, best.2);
 }
 
+/// [`coarse_grid`], unless `x` as given (a converged fit's damping and friction, say) has the
+/// higher log density: the grid is centred on the priors' medians and does not hold the start, so
+/// alone it can move a start from a good basin to a worse one (README, issue 25, stop 118).
+pub fn coarse_grid_or_start(post: &mut LogDensity<'_>, x: &mut [f64]) {
+    let (at_start, start) = (post(x).0, (x[0], x[1]));
+    coarse_grid(post, x);
+    if at_start >= post(x).0 {
+        (x[0], x[1]) = start;
+    }
+}
+
 /// Symmetrised finite-difference Hessian of `post` at `x` from its gradients.
 pub fn hessian(post: &mut LogDensity<'_>, x: &[f64]) -> DMatrix<f64> {
     let d = x.len();
@@ -392,6 +403,28 @@ pub fn mean_field_gap(guide_precision: &[f64], prior_diag: &[f64], edges: &[(usi
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A start in a narrow, high basin off the grid (a converged fit's damping and friction) is
+    /// kept; a start worse than the grid's best is moved there, as `coarse_grid` alone moves both.
+    #[test]
+    fn the_grid_keeps_a_start_better_than_every_grid_point() {
+        // A broad basin at the priors' medians and a narrow, higher one at (1.1, -0.35), which
+        // no grid point comes within 0.05 of.
+        let mut post = |x: &[f64]| {
+            let broad = -1.0 - 0.1 * (x[0] * x[0] + x[1] * x[1]);
+            let narrow = -1e4 * ((x[0] - 1.1).powi(2) + (x[1] + 0.35).powi(2));
+            (broad.max(narrow), vec![0.0; x.len()])
+        };
+        let mut x = vec![1.1, -0.35, 0.3];
+        coarse_grid(&mut post, &mut x);
+        assert!(x[0].abs() < 0.5 && x[1].abs() < 0.5, "the grid alone leaves the narrow basin: {x:?}");
+        let mut x = vec![1.1, -0.35, 0.3];
+        coarse_grid_or_start(&mut post, &mut x);
+        assert_eq!(x, vec![1.1, -0.35, 0.3]);
+        let mut x = vec![1.8, 1.8, 0.3];
+        coarse_grid_or_start(&mut post, &mut x);
+        assert!(x[0].abs() < 0.5 && x[1].abs() < 0.5 && x[2] == 0.3, "a poor start is not moved to the grid's best: {x:?}");
+    }
 
     /// Moved draws have the inflated covariance exactly, keep their mean, and stay put at `c = 1`.
     #[test]
