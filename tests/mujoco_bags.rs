@@ -165,9 +165,9 @@ fn a_push_on_an_unseen_part_is_not_held_against_the_part_nearest_it() {
 /// go. Criticism names gravity with the stop, and gravity cuts the held-out error to a third of
 /// the stop's alone. Before stop 118 the Laplace refits of criticism took damping and friction
 /// from a grid centred on the priors' medians even where the start (a converged fit's) was
-/// better, so gravity with the stop was fitted in a friction-held basin (+107.8 nats, where the
-/// mode near the truth gives +123.4) and the stop with quadratic damping was adopted instead
-/// (`laplace::coarse_grid_or_start`).
+/// better, so gravity with the stop was fitted in a friction-held basin (ELBO 108.7 nats, where
+/// the mode near the truth reaches 123.4) and the stop with quadratic damping (117.1) was adopted
+/// instead (`laplace::coarse_grid_or_start`).
 #[test]
 fn a_tilted_door_falling_onto_its_stop_is_given_gravity() {
     let run = common::replay(&[PathBuf::from("bags/effects/t300000_obj045_procedural.mcap")]);
