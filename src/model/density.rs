@@ -602,16 +602,16 @@ fn simulate_kinematic_n<const N: usize>(args: KinematicArgs<'_, '_>, kp: &dynami
     let carried = |u: &Matrix3<f64>| mat_mul(&mat_mul(&own.r, u), &own.r.transpose());
     // The subtree relative to the part at the window's start, then carried by `own`.
     let to_part = inverse(&transforms[i][f0]);
-    let (subtree, subtree_weight): (Vec<_>, Vec<_>) = desc
+    let subtree = desc
         .iter()
         .zip(&jw.subtree)
         .map(|(&m, body)| {
             let rel = to_part.compose(&transforms[m][f0]);
             let u = rel.r * ev.parts[m].unit_inertia * rel.r.transpose();
             let weight = own.apply_const(&rel.apply(&(chosen[m].params.com + ev.parts[m].weight_offset)));
-            ((Dn::<N>::from(body.mass), own.apply_const(&rel.apply(&chosen[m].params.com)), carried(&u)), weight)
+            (Dn::<N>::from(body.mass), own.apply_const(&rel.apply(&chosen[m].params.com)), carried(&u), weight)
         })
-        .unzip();
+        .collect();
     let geom = dynamics::WindowGeometry {
         direction: rot(&pre[f0].r, &p.direction),
         point: rot(&pre[f0].r, &p.point) + pre[f0].t.map(Dn::<N>::from),
@@ -620,7 +620,6 @@ fn simulate_kinematic_n<const N: usize>(args: KinematicArgs<'_, '_>, kp: &dynami
         unit_inertia: carried(&ev.parts[i].unit_inertia),
         subtree,
         weight_com: own.apply(&(p.com + ev.parts[i].weight_offset.map(Dn::<N>::from))),
-        subtree_weight,
     };
     let traj = dynamics::simulate_joint_in(jw, &geom, win, q0, Dn::<N>::from(0.0), kp, &model.dynamics);
     (0..win.frames.len()).map(|k| dynamics::psi_at(traj.as_ref(), win, k, q0)).collect()

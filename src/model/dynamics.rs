@@ -420,13 +420,15 @@ pub struct WindowGeometry<T: Real> {
     /// The child's centre of mass \[m\] and inertia per kilogram \[m²\].
     pub com: Vector3<T>,
     pub unit_inertia: Matrix3<T>,
-    /// The locked subtree's bodies: mass \[kg\], centre of mass, inertia per kilogram.
-    pub subtree: Vec<(T, Vector3<T>, Matrix3<T>)>,
-    /// Where the child's and each subtree body's weight acts \[m\] (the gravity effect's;
-    /// [`JointInWindow::weight_com`]), the subtree's in `subtree`'s order.
+    /// The locked subtree's bodies.
+    pub subtree: Vec<LiftedBody<T>>,
+    /// Where the child's weight acts \[m\] (the gravity effect's; [`JointInWindow::weight_com`]).
     pub weight_com: Vector3<T>,
-    pub subtree_weight: Vec<Vector3<T>>,
 }
+
+/// A locked subtree body of [`WindowGeometry`]: mass \[kg\], centre of mass \[m\], inertia per
+/// kilogram \[m²\] and where its weight acts \[m\] ([`SubtreeBody`] in the scalar type).
+pub type LiftedBody<T> = (T, Vector3<T>, Matrix3<T>, Vector3<T>);
 
 impl<T: Real> WindowGeometry<T> {
     /// `jw`'s geometry as constants of the scalar type.
@@ -438,9 +440,8 @@ impl<T: Real> WindowGeometry<T> {
             radius: T::from(p.radius),
             com: jw.com.map(T::from),
             unit_inertia: jw.unit_inertia.map(T::from),
-            subtree: jw.subtree.iter().map(|b| (T::from(b.mass), b.com.map(T::from), b.unit_inertia.map(T::from))).collect(),
+            subtree: jw.subtree.iter().map(|b| (T::from(b.mass), b.com.map(T::from), b.unit_inertia.map(T::from), b.weight_com.map(T::from))).collect(),
             weight_com: jw.weight_com.map(T::from),
-            subtree_weight: jw.subtree.iter().map(|b| b.weight_com.map(T::from)).collect(),
         }
     }
 }
@@ -514,7 +515,7 @@ fn simulate_scaled<T: Real>(
     // geometry holds it per kilogram (perception's hull model), so it scales with the body's mass
     // (unscaled, every revolute part had a floor of one kilogram's rotational inertia).
     let mut bodies = vec![(kp.mass, geom.com, geom.unit_inertia.map(|u| u * kp.mass))];
-    bodies.extend(geom.subtree.iter().map(|&(m, com, unit)| (m, com, unit.map(|u| u * m))));
+    bodies.extend(geom.subtree.iter().map(|&(m, com, unit, _)| (m, com, unit.map(|u| u * m))));
     let (d, point) = (&geom.direction, &geom.point);
     let inertia = generalised_inertia(kind, d, point, &bodies);
     let tau: Vec<T> = if !jw.pushed {
@@ -536,7 +537,7 @@ fn simulate_scaled<T: Real>(
         let g = Vector3::from(cfg.effects.gravity).map(T::from);
         jd.gravity_at = scale.to_joint(q0);
         // The weight acts at each body's weight centre, not at the hull centroid the inertia uses.
-        let weights = std::iter::once((kp.mass, &geom.weight_com)).chain(geom.subtree.iter().map(|b| b.0).zip(&geom.subtree_weight));
+        let weights = std::iter::once((kp.mass, &geom.weight_com)).chain(geom.subtree.iter().map(|b| (b.0, &b.3)));
         for (m, com) in weights {
             match kind {
                 JointKind::Revolute => {
