@@ -419,6 +419,15 @@ fn gravity_at_the_true_parameters_holds_a_tilted_door_shut() {
     assert!(series.windows.len() >= 3 && series.windows.iter().filter(|jw| jw.pushed).count() >= 2);
     assert!(at_surface < 0.03, "{at_surface:.4} m of path at the true parameters");
     assert!(at_hull > 3.0 * at_surface, "hull centroid {at_hull:.4} m against {at_surface:.4} m");
+    // The value criticism's grids search on (simulated in `f64`, stop 119) is the log posterior
+    // whose gradient Newton's method follows (dual numbers as wide as the parameters, 7 here),
+    // for the door's windows with these effects and with a spring too (9 parameters).
+    let all = |_: usize| true;
+    let sprung = EffectSet { spring: true, ..effects };
+    for (set, x) in [(effects, xi.clone()), (sprung, xi[..4].iter().copied().chain([0.5, -0.2]).chain(xi[4..].iter().copied()).collect())] {
+        let (value, with_gradient) = (series.log_posterior_value(&x, set, &all, dyncfg), series.log_posterior(&x, set, &all, dyncfg).0);
+        assert!((value - with_gradient).abs() <= 1e-9 * with_gradient.abs().max(1.0), "{value} against {with_gradient}");
+    }
 }
 
 /// Criticism revises itself: an effect adopted earlier is measured again on all windows at every

@@ -469,6 +469,9 @@ fn effect_starts(effects: &EffectSet) -> Vec<Vec<f64>> {
     starts
 }
 
+/// The mass's slot among the base four standardised parameters ([`dynamics::decode`]).
+const MASS: usize = 2;
+
 /// Standardised kinodynamic parameters to start from: the posterior's damping, friction and mass
 /// medians, the deviation at its prior median, effects' parameters at their prior medians.
 fn initial_xi(post: &Posterior, i: usize, effects: EffectSet, cfg: &DynamicsConfig) -> Vec<f64> {
@@ -496,6 +499,7 @@ fn candidate(series: &JointSeries, times: &[f64], effects: EffectSet, base: &[f6
 fn candidate_from(series: &JointSeries, times: &[f64], effects: EffectSet, base: &[f64], extra: &[Vec<f64>], own_starts: bool, dyncfg: &DynamicsConfig) -> Candidate {
     let all = |_: usize| true;
     let mut post = |x: &[f64]| series.log_posterior(x, effects, &all, dyncfg);
+    let mut value = |x: &[f64]| series.log_posterior_value(x, effects, &all, dyncfg);
     let mut fit: Option<LaplaceFit> = None;
     let own = if own_starts { effect_starts(&effects) } else { Vec::new() };
     let mut starts: Vec<Vec<f64>> = own.into_iter().map(|s| base[..4].iter().copied().chain(s).collect()).chain(extra.iter().cloned()).collect();
@@ -508,7 +512,7 @@ fn candidate_from(series: &JointSeries, times: &[f64], effects: EffectSet, base:
         starts.extend(first.into_iter().flat_map(|x| {
             [-2.0, -1.0, 0.0, 1.0, 2.0].map(|m| {
                 let mut y = x.clone();
-                y[2] = m;
+                y[MASS] = m;
                 y
             })
         }));
@@ -524,7 +528,7 @@ fn candidate_from(series: &JointSeries, times: &[f64], effects: EffectSet, base:
     for mut x in distinct {
         // The grid only where it beats the start: a start that carries a converged fit's damping
         // and friction (a pair joined from its singles) keeps them (README, issue 25, stop 118).
-        coarse_grid_or_start(&mut post, &mut x);
+        coarse_grid_or_start(&mut value, &mut x);
         let f = LaplaceFit::fit(&mut post, x);
         if fit.as_ref().is_none_or(|b| f.log_density > b.log_density) {
             fit = Some(f);

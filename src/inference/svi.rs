@@ -557,7 +557,7 @@ fn laplace_kinodynamics(
         let mut x: Vec<f64> = theta_in[kd.mu..kd.mu + kd.dim].to_vec();
         if initial {
             (x[2], x[3]) = (0.0, 1.0);
-            laplace::coarse_grid(&mut post, &mut x);
+            laplace::coarse_grid(&mut |x: &[f64]| post(x).0, &mut x);
         }
         // The reported (collapsed) fit runs to convergence; the guide's Laplace steps between
         // Adam phases need not, as the next phase continues from them.

@@ -252,11 +252,15 @@ pub fn window_prior(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64], obs
 /// [`robust_window_prior_collapsed`]).
 pub fn window_prior_split(jw: &JointInWindow<'_>, win: &WindowEvidence, q: &[f64], observed: Option<&Observed>, xi: &[f64], cfg: &DynamicsConfig, skip: Option<&[bool]>) -> (f64, Vec<f64>, Vec<f64>, f64) {
     // Dual numbers as wide as the parameters plus `q_{w,0}`: the base model's 4 + 1 are the
-    // common case and the cheapest.
+    // common case and the cheapest; every extra slot costs a multiply in every operation.
     match xi.len() {
         0..=4 => window_prior_n::<5>(jw, win, q, observed, xi, cfg, skip),
         5..=6 => window_prior_n::<7>(jw, win, q, observed, xi, cfg, skip),
-        7..=10 => window_prior_n::<11>(jw, win, q, observed, xi, cfg, skip),
+        // Criticism's candidates: a stop on both sides (7), with a second effect (8, 9).
+        7 => window_prior_n::<8>(jw, win, q, observed, xi, cfg, skip),
+        8 => window_prior_n::<9>(jw, win, q, observed, xi, cfg, skip),
+        9 => window_prior_n::<10>(jw, win, q, observed, xi, cfg, skip),
+        10 => window_prior_n::<11>(jw, win, q, observed, xi, cfg, skip),
         n => panic!("{n} kinodynamic parameters: at most 10 (4 base, 6 of effects)"),
     }
 }
