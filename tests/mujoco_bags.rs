@@ -368,7 +368,8 @@ fn the_physics_at_the_true_parameters_follows_every_push() {
 /// furthest each way), the door's physics follows all three windows when the weight acts at the
 /// centre of the part's seen surface (the mean of its model points), and does not when it acts at
 /// the hull centroid, which a few stray model points put 0.16 m off the door (README, issue 25,
-/// stop 117: the weight's moment then pushes the closed door open).
+/// stop 117: the weight's moment then pushes the closed door open). The value that criticism's
+/// grids search on there equals the log posterior whose gradient its Newton steps follow.
 #[test]
 fn gravity_at_the_true_parameters_holds_a_tilted_door_shut() {
     use bom::criticism::residuals::{part_transforms, JointSeries};

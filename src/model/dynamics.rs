@@ -986,24 +986,30 @@ mod tests {
 
     /// With every effect on (spring, both stops, gravity on a tilted hinge, quadratic damping) the
     /// physics prior's dual-number gradient still matches finite differences, in every parameter
-    /// and in the coordinates.
+    /// and in the coordinates; and so with 6 to 9 parameters, each of which has dual numbers of
+    /// its own width ([`window_prior_split`]).
     #[test]
     fn physics_prior_gradient_with_every_effect_matches_finite_differences() {
         let cfg = DynamicsConfig::default();
         let joint = door(Vector3::new(0.3, 0.0, 1.0).normalize());
-        let effects = EffectSet {
-            spring: true,
-            limit: Some(crate::model::effects::LimitSpec { lower: Some(-0.05), upper: Some(0.12) }),
-            gravity: true,
-            quadratic_damping: true,
-        };
-        let unit_inertia = Matrix3::from_diagonal(&Vector3::new(0.01, 0.01, 0.02));
-        let jw = JointInWindow { joint: &joint, com: joint.com, unit_inertia, weight_com: joint.com, subtree: vec![], pushed: true, effects };
-        let win = push_window(&cfg, 8.0);
-        let q: Vec<f64> = (0..13).map(|k| 0.01 * k as f64).collect();
-        let xi: Vec<f64> = (0..num_params(&effects)).map(|j| 0.1 * ((j as f64) * 1.7).sin()).collect();
-        assert_eq!(xi.len(), 4 + 2 + 3 + 1);
-        check_gradients(&jw, &win, &q, &xi, &cfg);
+        let stops = Some(crate::model::effects::LimitSpec { lower: Some(-0.05), upper: Some(0.12) });
+        let every = EffectSet { spring: true, limit: stops, gravity: true, quadratic_damping: true };
+        let sets = [
+            (every, 10),
+            (EffectSet { spring: true, ..Default::default() }, 6),
+            (EffectSet { limit: stops, gravity: true, ..Default::default() }, 7),
+            (EffectSet { limit: stops, quadratic_damping: true, ..Default::default() }, 8),
+            (EffectSet { spring: true, limit: stops, ..Default::default() }, 9),
+        ];
+        for (effects, n) in sets {
+            let unit_inertia = Matrix3::from_diagonal(&Vector3::new(0.01, 0.01, 0.02));
+            let jw = JointInWindow { joint: &joint, com: joint.com, unit_inertia, weight_com: joint.com, subtree: vec![], pushed: true, effects };
+            let win = push_window(&cfg, 8.0);
+            let q: Vec<f64> = (0..13).map(|k| 0.01 * k as f64).collect();
+            let xi: Vec<f64> = (0..num_params(&effects)).map(|j| 0.1 * ((j as f64) * 1.7).sin()).collect();
+            assert_eq!(xi.len(), n);
+            check_gradients(&jw, &win, &q, &xi, &cfg);
+        }
     }
 
     /// The value-only path ([`window_prior_value`], [`robust_window_prior_value`], simulated in
