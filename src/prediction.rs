@@ -9,8 +9,9 @@
 //! medians and once per posterior draw. A draw takes each joint's type from its probabilities,
 //! the axis direction and point from their reported spreads, damping, friction and mass
 //! log-normally from their 90% intervals, and the effects model criticism adopted at their
-//! medians. Each part's centre of mass is reported as the medians' trajectory and the draws' 90%
-//! band ([`Prediction`]).
+//! medians. Damping, friction and mass are drawn jointly, with the correlation of their logs
+//! under the posterior ([`JointModel::log_correlation`]). Each part's centre of mass is reported
+//! as the medians' trajectory, the draws' 90% band and the draws' mean ([`Prediction`]).
 //!
 //! A kinematic-mode posterior (no damping, friction or mass) has no forces to simulate: its joints
 //! keep their velocity at `S` along their paths (constant velocity in joint space).
@@ -64,11 +65,9 @@ impl LogNormal {
         Self::from_interval(e.median, e.q05, e.q95)
     }
 
-    fn draw<R: Rng>(&self, rng: Option<&mut R>) -> f64 {
-        match rng {
-            Some(r) => self.median * (self.sd_log * r.sample::<f64, _>(StandardNormal)).exp(),
-            None => self.median,
-        }
+    /// The value `z` standard deviations from the median in log space.
+    fn at(&self, z: f64) -> f64 {
+        self.median * (self.sd_log * z).exp()
     }
 }
 
@@ -104,6 +103,9 @@ pub struct JointModel {
     pub damping: Option<LogNormal>,
     pub friction: Option<LogNormal>,
     pub mass: Option<LogNormal>,
+    /// Correlation of the logs of damping, friction and mass under the posterior (the summary's
+    /// `log_correlation`; the identity where it has none): a draw takes the three jointly.
+    pub log_correlation: Matrix3<f64>,
     /// Effects adopted by model criticism, with their medians by name in joint units (radians for
     /// a revolute joint's positions), positions from the summary's reference configuration.
     pub effects: Vec<(EffectKind, BTreeMap<String, f64>)>,
@@ -157,6 +159,7 @@ impl PredictiveModel {
                     damping: kd.map(|k| LogNormal::from_estimate(&k.damping)),
                     friction: kd.map(|k| LogNormal::from_estimate(&k.friction)),
                     mass: kd.map(|k| LogNormal::from_estimate(&k.mass)),
+                    log_correlation: kd.map_or(Matrix3::identity(), |k| k.log_correlation),
                     axis,
                     effects: adopted(findings.iter().filter(|f| f.part == j.child).filter_map(|f| Some((f.effect?, f.params.iter().cloned().collect())))),
                 }
@@ -240,6 +243,7 @@ impl PredictiveModel {
                 damping: estimate("damping"),
                 friction: estimate("friction"),
                 mass: estimate("mass"),
+                log_correlation: log_correlation(j.get("log_correlation")).ok_or_else(|| bad(format!("{}: not a 3x3 correlation matrix", field("log_correlation"))))?,
                 effects: adopted(findings.iter().filter(|(p, _, _)| *p == child).map(|(_, k, p)| (*k, p.clone()))),
             });
         }
@@ -314,6 +318,8 @@ pub struct PartScore {
     pub frames: usize,
     /// Mean squared distance between predicted (medians) and observed centres \[m²\].
     pub mse_m2: f64,
+    /// The same for the draws' mean ([`PartPrediction::mean`]) \[m²\].
+    pub mse_mean_m2: f64,
     /// Fraction of observed centres inside the 90% band widened by perception's noise: within
     /// `sqrt(band_radius² + (2.5 sigma)²)` of the prediction, `2.5 sigma` the 90% radius of an
     /// isotropic 3-D Gaussian of per-axis sd `sigma` (chi-square, 3 dof). NaN without frames.
@@ -329,17 +335,18 @@ pub fn score(pred: &Prediction, scene: &Scene<'_>) -> Vec<PartScore> {
     pred.parts
         .iter()
         .map(|p| {
-            let (mut n, mut se, mut inside, mut last) = (0usize, 0.0, 0usize, f64::NAN);
+            let (mut n, mut se, mut se_mean, mut inside, mut last) = (0usize, 0.0, 0.0, 0usize, f64::NAN);
             for (k, &t) in pred.stamps.iter().enumerate() {
                 let Some((y, var)) = scene.observed_com(p.label, t) else { continue };
                 let d = (y - p.com[k]).norm();
                 n += 1;
                 se += d * d;
+                se_mean += (y - p.mean[k]).norm_squared();
                 inside += (d <= (p.band_radius_m[k].powi(2) + R90 * R90 * var).sqrt()) as usize;
                 last = d;
             }
             let frac = |x: f64| if n > 0 { x / n as f64 } else { f64::NAN };
-            PartScore { label: p.label, frames: n, mse_m2: frac(se), coverage_90: frac(inside as f64), final_error_m: last }
+            PartScore { label: p.label, frames: n, mse_m2: frac(se), mse_mean_m2: frac(se_mean), coverage_90: frac(inside as f64), final_error_m: last }
         })
         .collect()
 }
@@ -381,6 +388,12 @@ pub struct PartPrediction {
     pub upper: Vec<Vector3<f64>>,
     /// 90% quantile of the draws' distance from `com` \[m\]: a ball holding 90% of the draws.
     pub band_radius_m: Vec<f64>,
+    /// The draws' mean centre of mass \[m, fixed frame\] (equal to `com` without draws): the
+    /// posterior predictive mean, the prediction of least expected squared error were the draws
+    /// the posterior's (`com` is one simulation at the medians, which a wide posterior over a
+    /// nonlinear simulation need not be near). Measured, it is better where a part's
+    /// kinodynamics are the prior's and worse where they were fitted (README, stop 121).
+    pub mean: Vec<Vector3<f64>>,
 }
 
 /// The posterior predictive of all parts from `from` on.
@@ -456,8 +469,10 @@ pub fn predict(model: &PredictiveModel, scene: &Scene<'_>, from: f64, stamps: &[
         .map(|(i, &label)| {
             let n = stamps.len();
             let (mut lower, mut upper, mut band) = (med.0[i].clone(), med.0[i].clone(), vec![0.0; n]);
+            let mut mean = med.0[i].clone();
             if !draws.is_empty() {
                 for k in 0..n {
+                    mean[k] = draws.iter().map(|d| d[i][k]).sum::<Vector3<f64>>() / draws.len() as f64;
                     for a in 0..3 {
                         let mut x: Vec<f64> = draws.iter().map(|d| d[i][k][a]).collect();
                         lower[k][a] = quantile(&mut x, 0.05);
@@ -467,7 +482,7 @@ pub fn predict(model: &PredictiveModel, scene: &Scene<'_>, from: f64, stamps: &[
                     band[k] = quantile(&mut r, 0.9);
                 }
             }
-            PartPrediction { label, com: med.0[i].clone(), rotation: med.1[i].clone(), lower, upper, band_radius_m: band }
+            PartPrediction { label, com: med.0[i].clone(), rotation: med.1[i].clone(), lower, upper, band_radius_m: band, mean }
         })
         .collect();
     Ok(Prediction { from, stamps, parts, draws: cfg.draws })
@@ -532,6 +547,23 @@ fn topological(model: &PredictiveModel) -> Vec<(usize, Option<usize>)> {
     out
 }
 
+/// A summary's `log_correlation` (rows of a 3x3 matrix): the identity where absent; `None` where
+/// it is not a correlation matrix (not 3x3, not finite, not symmetric with a unit diagonal, or
+/// not positive definite).
+fn log_correlation(v: Option<&serde_json::Value>) -> Option<Matrix3<f64>> {
+    let Some(v) = v.filter(|v| !v.is_null()) else { return Some(Matrix3::identity()) };
+    let rows = v.as_array().filter(|r| r.len() == 3)?;
+    let mut m = Matrix3::zeros();
+    for (r, row) in rows.iter().enumerate() {
+        let row = row.as_array().filter(|x| x.len() == 3)?;
+        for (c, x) in row.iter().enumerate() {
+            m[(r, c)] = x.as_f64().filter(|x| x.is_finite() && x.abs() <= 1.0)?;
+        }
+    }
+    let ok = (0..3).all(|k| (m[(k, k)] - 1.0).abs() < 1e-9) && (m - m.transpose()).abs().max() < 1e-9 && m.cholesky().is_some();
+    ok.then_some(m)
+}
+
 /// One posterior draw of every joint (`rng` `None`: the medians and the MAP types).
 fn draw<R: Rng>(model: &PredictiveModel, mut rng: Option<&mut R>) -> Vec<DrawnJoint> {
     let mut out = Vec::with_capacity(model.joints.len());
@@ -574,15 +606,17 @@ fn draw<R: Rng>(model: &PredictiveModel, mut rng: Option<&mut R>) -> Vec<DrawnJo
             let (a, c): (f64, f64) = (r.sample(StandardNormal), r.sample(StandardNormal));
             point += e1 * (a * s) + e2 * (c * s);
         }
-        out.push(DrawnJoint {
-            joint: ty,
-            direction,
-            point,
-            damping: b.draw(rng.as_deref_mut()),
-            friction: f.draw(rng.as_deref_mut()),
-            mass: m.draw(rng.as_deref_mut()),
-            kinematic,
-        });
+        // The three log parameters jointly: `z = L e`, `L L^T` their correlation, `e ~ N(0, I)`
+        // (with the identity, each its own draw as before).
+        let z = match rng.as_deref_mut() {
+            Some(r) => {
+                let e = Vector3::from_fn(|_, _| r.sample::<f64, _>(StandardNormal));
+                let l = j.log_correlation.cholesky().map_or(Matrix3::identity(), |c| c.l());
+                l * e
+            }
+            None => Vector3::zeros(),
+        };
+        out.push(DrawnJoint { joint: ty, direction, point, damping: b.at(z[0]), friction: f.at(z[1]), mass: m.at(z[2]), kinematic });
     }
     out
 }
@@ -838,5 +872,41 @@ mod tests {
         // the line through +-3 mm alternating ends 1.8 mm below zero, nearer than the last frame's 3 mm
         assert!(at.z.abs() < 0.003 && at.z < 0.0, "{at}");
         assert!(smoothed(&line[..2], 1.1).is_none());
+    }
+
+    /// A draw takes damping, friction and mass jointly with the posterior's log correlation (the
+    /// identity: apart); the medians draw nothing.
+    #[test]
+    fn draws_keep_the_kinodynamic_correlation() {
+        let joint = |r: f64| JointModel {
+            child: 2,
+            parent: 1,
+            type_probs: [0.0, 1.0, 0.0],
+            axis: Some(AxisModel { joint: JointType::Prismatic, direction: Vector3::x(), direction_sd_deg: 1.0, point: None, point_sd_m: 0.0 }),
+            com: None,
+            damping: Some(LogNormal { median: 4.0, sd_log: 0.5 }),
+            friction: Some(LogNormal { median: 1.0, sd_log: 1.0 }),
+            mass: Some(LogNormal { median: 0.8, sd_log: 0.2 }),
+            log_correlation: Matrix3::new(1.0, r, 0.0, r, 1.0, 0.0, 0.0, 0.0, 1.0),
+            effects: Vec::new(),
+        };
+        let correlation = |r: f64| {
+            let model = PredictiveModel { joints: vec![joint(r)] };
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+            let v: Vec<[f64; 3]> = (0..20_000).map(|_| draw(&model, Some(&mut rng))).map(|d| [d[0].damping, d[0].friction, d[0].mass]).collect();
+            crate::inference::summary::log_correlation(&crate::inference::summary::log_covariance(&v), 0.0)
+        };
+        let (tied, apart) = (correlation(-0.8), correlation(0.0));
+        assert!((tied[(0, 1)] + 0.8).abs() < 0.02 && tied[(0, 2)].abs() < 0.03, "{tied}");
+        assert!(apart[(0, 1)].abs() < 0.03, "{apart}");
+        let median = draw(&PredictiveModel { joints: vec![joint(-0.8)] }, None::<&mut rand_chacha::ChaCha8Rng>);
+        assert_eq!((median[0].damping, median[0].friction, median[0].mass), (4.0, 1.0, 0.8));
+        // A summary's matrix: absent is the identity; not a correlation matrix is refused.
+        let read = |v: serde_json::Value| log_correlation(Some(&v));
+        assert_eq!(read(serde_json::Value::Null), Some(Matrix3::identity()));
+        assert!(read(serde_json::json!([[1.0, 0.5, 0.0], [0.5, 1.0, 0.0], [0.0, 0.0, 1.0]])).is_some());
+        assert!(read(serde_json::json!([[1.0, 0.5, 0.0], [0.4, 1.0, 0.0], [0.0, 0.0, 1.0]])).is_none());
+        assert!(read(serde_json::json!([[1.0, 0.9, 0.9], [0.9, 1.0, -0.9], [0.9, -0.9, 1.0]])).is_none());
+        assert!(read(serde_json::json!([[1.0, 0.5], [0.5, 1.0]])).is_none());
     }
 }

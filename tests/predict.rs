@@ -25,6 +25,14 @@ fn summary_json_model_predicts_like_the_posterior_and_tracks_the_drawer() {
     let text = serde_json::to_string(&json::summary(&run)).unwrap();
     let read = PredictiveModel::from_summary_json(&serde_json::from_str(&text).unwrap()).unwrap();
     assert_eq!(direct.labels(), read.labels());
+    // The kinodynamics' log correlation travels through the JSON with them (a rigid joint's
+    // kinodynamics are not written): the drawer's damping and friction trade against each other
+    // under its posterior (not the identity).
+    for (d, r) in direct.joints.iter().zip(&read.joints).filter(|(_, r)| r.damping.is_some()) {
+        assert!((d.log_correlation - r.log_correlation).abs().max() < 1e-9, "part {}", d.child);
+    }
+    let drawer = read.joints.iter().find(|j| j.child == 2).expect("the drawer");
+    assert!(drawer.damping.is_some() && drawer.log_correlation[(0, 1)].abs() > 0.05, "{}", drawer.log_correlation);
 
     let mut diag = Diagnostics::default();
     let obs = pipeline::observe(&[PathBuf::from(DRAWER)], &cfg, &mut diag).unwrap();
@@ -89,6 +97,7 @@ fn bom_predict_command_and_its_exit_codes() {
     for part in p["parts"].as_array().unwrap() {
         assert_eq!(part["com"].as_array().unwrap().len(), stamps);
         assert_eq!(part["band_radius_m"].as_array().unwrap().len(), stamps);
+        assert_eq!(part["mean"].as_array().unwrap().len(), stamps);
         assert_eq!(part["observed"].as_array().unwrap().len(), stamps);
     }
 
@@ -132,6 +141,12 @@ fn eval_tracking_leaves_each_push_out() {
     }
     let ol = &t["open_loop"];
     assert!(ol["mse_bom_m2"].as_f64().unwrap() < 0.1 * ol["mse_const_vel_m2"].as_f64().unwrap(), "{ol}");
+    // Open loop the draws' mean is scored beside the medians' simulation; one step has no draws.
+    assert!(ol["mse_bom_mean_m2"].as_f64().is_some_and(|x| x.is_finite() && x >= 0.0), "{ol}");
+    assert!(t["one_step"].get("mse_bom_mean_m2").is_none(), "{t}");
+    // The drawer is pushed in every window, so no held-out push is its part's only one.
+    assert!(rows.iter().all(|r| r["pushed_elsewhere"] == true) && t["open_loop_only_push"].is_null(), "{t}");
+    assert_eq!(t["open_loop_pushed_elsewhere"], t["open_loop"]);
     assert!(t["coverage_90"].as_f64().unwrap() >= 0.8, "{t}");
     assert_eq!(t["kalman_grid"].as_array().unwrap().len(), 14);
 }

@@ -8,7 +8,8 @@
 //! predicted with [`crate::prediction`]:
 //! - **open loop**: from the state observed over the window's first 0.1 s
 //!   ([`PredictConfig::state_window_s`]) and the measured wrench, every part's centre of mass over
-//!   the rest of the window (median; 90% band of [`PredictConfig::draws`] draws);
+//!   the rest of the window (the simulation at the posterior medians, and the 90% band of
+//!   [`PredictConfig::draws`] posterior draws; the draws' mean is scored beside it);
 //! - **one step** (what a tracker uses): at each cloud of the window, the next cloud's centres
 //!   from everything observed up to it (the state at this cloud) and the wrench up to the next.
 //!
@@ -62,7 +63,13 @@ pub struct GridRow {
 /// Mean squared distance of predicted from observed centres of mass \[m²\], bom and baselines.
 #[derive(Debug, Clone, Copy, Serialize, PartialEq)]
 pub struct Mse {
+    /// bom's: the simulation at the posterior medians ([`prediction::PartPrediction::com`]).
     pub mse_bom_m2: f64,
+    /// Open loop (beyond the contract): bom's MSE with the posterior draws' mean centre of mass
+    /// ([`prediction::PartPrediction::mean`]), the prediction of least expected squared error
+    /// were the draws the posterior's; measured and not made the headline (README, stop 121).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub mse_bom_mean_m2: Option<f64>,
     pub mse_const_vel_m2: f64,
     pub mse_const_acc_m2: f64,
     /// Predicted (part, cloud) pairs with an observation.
@@ -77,6 +84,9 @@ pub struct Interaction {
     pub start_s: f64,
     pub end_s: f64,
     pub pushed_part: Option<u32>,
+    /// Whether another window (one the posterior was fitted on) pushes the same part (beyond the
+    /// contract): where none does, that part's kinodynamics are its prior's.
+    pub pushed_elsewhere: bool,
     pub open_loop: Option<Mse>,
     pub one_step: Option<Mse>,
     /// Open loop: fraction of observed centres inside the 90% band (widened by perception's noise,
@@ -93,6 +103,10 @@ pub struct Tracking {
     /// Means over the scored held-out windows of their MSEs.
     pub open_loop: Option<Mse>,
     pub one_step: Option<Mse>,
+    /// Open loop over the windows whose pushed part another window pushes, and over those where
+    /// the held-out push is the part's only one (beyond the contract; [`Interaction::pushed_elsewhere`]).
+    pub open_loop_pushed_elsewhere: Option<Mse>,
+    pub open_loop_only_push: Option<Mse>,
     /// Open loop: observed centres inside the 90% band, pooled over windows.
     pub coverage_90: Option<f64>,
     /// One step: held-out windows where bom's MSE is below both filters', and windows scored.
@@ -123,7 +137,8 @@ pub fn evaluate(run: &Run, cfg: &Config) -> Tracking {
     };
     for (w, win) in run.windows.iter().enumerate() {
         let mut g = vec![[0.0; 4]; grid_q.len()];
-        let mut row = Interaction { window: w, start_s: win.start, end_s: win.end, pushed_part: win.pushed_part, open_loop: None, one_step: None, coverage_90: None, skipped: None };
+        let pushed_elsewhere = win.pushed_part.is_some() && run.windows.iter().enumerate().any(|(k, x)| k != w && x.pushed_part == win.pushed_part);
+        let mut row = Interaction { window: w, start_s: win.start, end_s: win.end, pushed_part: win.pushed_part, pushed_elsewhere, open_loop: None, one_step: None, coverage_90: None, skipped: None };
         if run.wrenches.is_empty() || win.pushed_part.is_none() {
             row.skipped = Some("no wrench or no pushed part".into());
             interactions.push(row);
@@ -155,7 +170,7 @@ pub fn evaluate(run: &Run, cfg: &Config) -> Tracking {
                     let filters: Vec<_> = grid_q.iter().map(|&(o, q)| kalman(o, &seen, q)).collect();
                     for (k, &t) in pred.stamps.iter().enumerate() {
                         let Some((y, _)) = scene.observed_com(label, t) else { continue };
-                        acc.add(&pred.parts[i].com[k], cv.as_ref().map(|f| f.predict(t)), ca.as_ref().map(|f| f.predict(t)), &y);
+                        acc.add(&pred.parts[i].com[k], Some(&pred.parts[i].mean[k]), cv.as_ref().map(|f| f.predict(t)), ca.as_ref().map(|f| f.predict(t)), &y);
                         for (e, f) in g.iter_mut().zip(&filters) {
                             if let Some(f) = f {
                                 e[0] += (f(t) - y).norm_squared();
@@ -182,7 +197,7 @@ pub fn evaluate(run: &Run, cfg: &Config) -> Tracking {
                 let seen: Vec<(f64, Vector3<f64>, f64)> = stamps.iter().filter(|&&t| t <= t0).filter_map(|&t| scene.observed_com(part.label, t).map(|(y, v)| (t, y, v))).collect();
                 let cv = Kalman::<2>::run(&seen, tcfg.const_vel_q).map(|f| f.predict(t1));
                 let ca = Kalman::<3>::run(&seen, tcfg.const_acc_q).map(|f| f.predict(t1));
-                acc.add(&part.com[0], cv, ca, &y);
+                acc.add(&part.com[0], None, cv, ca, &y);
                 for (e, &(o, q)) in g.iter_mut().zip(&grid_q) {
                     if let Some(f) = kalman(o, &seen, q) {
                         e[2] += (f(t1) - y).norm_squared();
@@ -201,6 +216,7 @@ pub fn evaluate(run: &Run, cfg: &Config) -> Tracking {
             let n = v.len() as f64;
             Mse {
                 mse_bom_m2: v.iter().map(|m| m.mse_bom_m2).sum::<f64>() / n,
+                mse_bom_mean_m2: v.iter().map(|m| m.mse_bom_mean_m2).sum::<Option<f64>>().map(|s| s / n),
                 mse_const_vel_m2: v.iter().map(|m| m.mse_const_vel_m2).sum::<f64>() / n,
                 mse_const_acc_m2: v.iter().map(|m| m.mse_const_acc_m2).sum::<f64>() / n,
                 frames: v.iter().map(|m| m.frames).sum(),
@@ -215,6 +231,8 @@ pub fn evaluate(run: &Run, cfg: &Config) -> Tracking {
     Tracking {
         open_loop: mean(&|r| r.open_loop),
         one_step: mean(&|r| r.one_step),
+        open_loop_pushed_elsewhere: mean(&|r| r.open_loop.filter(|_| r.pushed_elsewhere)),
+        open_loop_only_push: mean(&|r| r.open_loop.filter(|_| !r.pushed_elsewhere)),
         coverage_90: (n > 0).then(|| inside / n as f64),
         one_step_bom_best: [scored.iter().filter(|m| m.mse_bom_m2 < m.mse_const_vel_m2.min(m.mse_const_acc_m2)).count(), scored.len()],
         kalman_grid: grid_q
@@ -236,17 +254,24 @@ pub fn evaluate(run: &Run, cfg: &Config) -> Tracking {
 #[derive(Default)]
 struct Accumulator {
     bom: f64,
+    /// Squared errors of the draws' mean (open loop), and their count.
+    mean: f64,
+    n_mean: usize,
     cv: f64,
     ca: f64,
     n: usize,
 }
 
 impl Accumulator {
-    /// One observed centre `y` against the three predictions (a filter without observations yet
-    /// predicts nothing: the pair is not counted).
-    fn add(&mut self, bom: &Vector3<f64>, cv: Option<Vector3<f64>>, ca: Option<Vector3<f64>>, y: &Vector3<f64>) {
+    /// One observed centre `y` against the three predictions, and bom's draws' mean where there
+    /// is one (a filter without observations yet predicts nothing: the pair is not counted).
+    fn add(&mut self, bom: &Vector3<f64>, mean: Option<&Vector3<f64>>, cv: Option<Vector3<f64>>, ca: Option<Vector3<f64>>, y: &Vector3<f64>) {
         if let (Some(cv), Some(ca)) = (cv, ca) {
             self.bom += (bom - y).norm_squared();
+            if let Some(m) = mean {
+                self.mean += (m - y).norm_squared();
+                self.n_mean += 1;
+            }
             self.cv += (cv - y).norm_squared();
             self.ca += (ca - y).norm_squared();
             self.n += 1;
@@ -255,7 +280,8 @@ impl Accumulator {
 
     fn mse(&self) -> Option<Mse> {
         let n = self.n as f64;
-        (self.n > 0).then(|| Mse { mse_bom_m2: self.bom / n, mse_const_vel_m2: self.cv / n, mse_const_acc_m2: self.ca / n, frames: self.n })
+        let mean = (self.n_mean > 0).then(|| self.mean / self.n_mean as f64);
+        (self.n > 0).then(|| Mse { mse_bom_m2: self.bom / n, mse_bom_mean_m2: mean, mse_const_vel_m2: self.cv / n, mse_const_acc_m2: self.ca / n, frames: self.n })
     }
 }
 

@@ -13,7 +13,7 @@ pub mod structure;
 pub mod summary;
 pub mod svi;
 
-use nalgebra::Vector3;
+use nalgebra::{Matrix3, Vector3};
 
 use crate::model::{JointParams, JointType};
 
@@ -124,6 +124,12 @@ pub struct Kinodynamics {
     /// [`laplace::cluster_inflation`]). BOM-NUTS applies SVI's to its draws
     /// ([`laplace::inflated_draws`]).
     pub inflation: f64,
+    /// Correlation matrix of (log damping, log friction, log mass), in that order, under the
+    /// posterior with the model discrepancy's independent log noise on each (the identity where
+    /// unknown; [`summary::log_correlation`]). The guide's kinodynamic block is one full Gaussian:
+    /// damping trades for Coulomb friction along a ridge and both grow with the mass, so the three
+    /// drawn apart from their intervals spread a prediction wider than the posterior does.
+    pub log_correlation: Matrix3<f64>,
 }
 
 /// Posterior of the joint attaching one part.

@@ -61,7 +61,7 @@ use statrs::distribution::{ContinuousCDF, Normal};
 
 use super::guide::GuideState;
 use super::laplace::inflated_draws;
-use super::summary::{axis_from_draws, estimate_from_draws, widened, with_log_discrepancy};
+use super::summary::{axis_from_draws, estimate_from_draws, log_correlation, log_covariance, widened, with_log_discrepancy};
 use super::svi::Fitted;
 use super::{Kinodynamics, Posterior};
 use crate::model::density::{Density, NonCentred, Structure};
@@ -1195,7 +1195,14 @@ fn summarise_map(posterior: &mut Posterior, density: &Density<'_>, sd: &Structur
             let kp: Vec<dynamics::KinoParams<f64>> = inflated_draws(&block, kd_inflation).iter().map(|x| dynamics::decode::<f64>(s.joint, x, &ev.effects[i], &model.dynamics)).collect();
             let discrepancy = model.dynamics.discrepancy_log_sd;
             let est = |f: &dyn Fn(&dynamics::KinoParams<f64>) -> f64| with_log_discrepancy(estimate_from_draws(&kp.iter().map(f).collect::<Vec<f64>>()), discrepancy);
-            Kinodynamics { damping: est(&|k| k.damping), friction: est(&|k| k.friction), mass: est(&|k| k.mass), inflation: kd_inflation }
+            let logs = log_covariance(&kp.iter().map(|k| [k.damping, k.friction, k.mass]).collect::<Vec<_>>());
+            Kinodynamics {
+                damping: est(&|k| k.damping),
+                friction: est(&|k| k.friction),
+                mass: est(&|k| k.mass),
+                inflation: kd_inflation,
+                log_correlation: log_correlation(&logs, discrepancy),
+            }
         });
     }
 }

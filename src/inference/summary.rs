@@ -1,7 +1,7 @@
 //! Posterior summaries of a fitted guide: parent marginals and the most probable tree, joint-type
 //! probabilities, axes with their spread, kinodynamic parameters with their 90% intervals.
 
-use nalgebra::Vector3;
+use nalgebra::{Matrix3, Vector3};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 
@@ -66,7 +66,16 @@ pub fn joints(
                     Estimate { median, sd, q05, q95 }
                 };
                 let [d, f, m] = dynamics::prior_scales(axis_type, &model.dynamics);
-                Kinodynamics { damping: est(0, d), friction: est(1, f), mass: est(2, m), inflation: inflation[i][axis_type.index()].max(1.0) }
+                // The block's covariance in the parameters' logs: `ln p = ln median + sd_log * x`.
+                let scale = Matrix3::from_diagonal(&Vector3::new(d.1, f.1, m.1));
+                let log_cov = scale * cov.fixed_view::<3, 3>(0, 0) * scale;
+                Kinodynamics {
+                    damping: est(0, d),
+                    friction: est(1, f),
+                    mass: est(2, m),
+                    inflation: inflation[i][axis_type.index()].max(1.0),
+                    log_correlation: log_correlation(&log_cov, model.dynamics.discrepancy_log_sd),
+                }
             });
             let mean_params: [JointParams<f64>; 3] = JointType::ALL.map(|jt| {
                 let bl = layout.blocks[i][jt.index()];
@@ -171,6 +180,37 @@ pub fn widened(axis: AxisSummary, inflation: f64) -> AxisSummary {
     AxisSummary { point_posterior_sd_m: axis.point_posterior_sd_m * w, inflation, posterior_sd_deg: sd, posterior_q90_deg: q90, ..axis }.with_discrepancy(d, p)
 }
 
+/// The correlation matrix of the covariance `cov` (3x3, of the kinodynamic parameters' logs)
+/// once an independent log discrepancy of sd `discrepancy` is added to each variance (as
+/// [`dynamics::log_normal_summary`] adds it to each interval). A parameter whose variance is not
+/// positive and finite is uncorrelated with the others.
+pub fn log_correlation(cov: &Matrix3<f64>, discrepancy: f64) -> Matrix3<f64> {
+    let var = |j: usize| cov[(j, j)] + discrepancy * discrepancy;
+    Matrix3::from_fn(|j, k| {
+        if j == k {
+            return 1.0;
+        }
+        let (a, b) = (var(j), var(k));
+        let r = cov[(j, k)] / (a * b).sqrt();
+        if a > 0.0 && b > 0.0 && r.is_finite() {
+            r.clamp(-1.0, 1.0)
+        } else {
+            0.0
+        }
+    })
+}
+
+/// The sample covariance (3x3) of the logs of draws `v` (each `[damping, friction, mass]`); the
+/// zero matrix for fewer than two draws or any draw not positive.
+pub fn log_covariance(v: &[[f64; 3]]) -> Matrix3<f64> {
+    if v.len() < 2 || v.iter().flatten().any(|x| !(*x > 0.0)) {
+        return Matrix3::zeros();
+    }
+    let logs: Vec<Vector3<f64>> = v.iter().map(|x| Vector3::new(x[0].ln(), x[1].ln(), x[2].ln())).collect();
+    let mean = logs.iter().sum::<Vector3<f64>>() / logs.len() as f64;
+    logs.iter().map(|x| (x - mean) * (x - mean).transpose()).sum::<Matrix3<f64>>() / (logs.len() - 1) as f64
+}
+
 /// Median, standard deviation and 5% / 95% quantiles of draws of a scalar (at least one; NaNs
 /// sort last).
 pub fn estimate_from_draws(v: &[f64]) -> Estimate {
@@ -227,6 +267,36 @@ mod tests {
         assert!((point.q05 / q05 - 1.0).abs() < 1e-12 && (point.q95 / q95 - 1.0).abs() < 1e-12 && (point.sd / sd - 1.0).abs() < 1e-12, "{point:?}");
         let none = with_log_discrepancy(e, 0.0);
         assert_eq!((none.q05, none.q95), (e.q05, e.q95));
+    }
+
+    /// The kinodynamic correlation: the draws' log covariance gives back the correlation they were
+    /// drawn with; the discrepancy, independent on each parameter, weakens it by the variances it
+    /// adds; a parameter without variance is uncorrelated.
+    #[test]
+    fn log_correlation_of_draws_and_with_the_discrepancy() {
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        // ln(damping, friction, mass) with sds 0.4, 0.8, 0.2 and correlations -0.7, 0.3, 0.
+        let sd: Vector3<f64> = Vector3::new(0.4, 0.8, 0.2);
+        let r = Matrix3::new(1.0, -0.7, 0.3, -0.7, 1.0, 0.0, 0.3, 0.0, 1.0);
+        let l = r.cholesky().expect("positive definite").l();
+        let draws: Vec<[f64; 3]> = (0..50_000)
+            .map(|_| {
+                let z: Vector3<f64> = l * Vector3::from_fn(|_, _| StandardNormal.sample(&mut rng));
+                [2.0 * (sd[0] * z[0]).exp(), 0.5 * (sd[1] * z[1]).exp(), 1.5 * (sd[2] * z[2]).exp()]
+            })
+            .collect();
+        let cov = log_covariance(&draws);
+        let back = log_correlation(&cov, 0.0);
+        assert!((back - r).abs().max() < 0.02, "{back}");
+        assert!((cov[(1, 1)] / 0.64 - 1.0).abs() < 0.03, "{cov}");
+        let delta = 0.3;
+        let weak = log_correlation(&cov, delta);
+        let expect = cov[(0, 1)] / ((cov[(0, 0)] + delta * delta) * (cov[(1, 1)] + delta * delta)).sqrt();
+        assert!((weak[(0, 1)] - expect).abs() < 1e-12 && weak[(0, 1)].abs() < back[(0, 1)].abs(), "{weak}");
+        assert_eq!(weak, weak.transpose());
+        let flat = Matrix3::new(1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0);
+        assert_eq!(log_correlation(&flat, 0.0), Matrix3::identity());
+        assert_eq!(log_covariance(&draws[..1]), Matrix3::zeros());
     }
 
     /// Directions about z tilted by an isotropic Gaussian of `sd` rad per direction across it, as

@@ -85,6 +85,12 @@ pub struct JointJson {
     pub damping: Option<EstimateJson>,
     pub friction: Option<EstimateJson>,
     pub mass: Option<EstimateJson>,
+    /// Correlation of the logs of `damping`, `friction` and `mass`, rows of a 3x3 matrix in that
+    /// order (beyond the contract's example; with the kinodynamics only): the three are not
+    /// independent under the posterior, and `bom predict` draws them jointly
+    /// ([`crate::inference::Kinodynamics::log_correlation`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub log_correlation: Option<[[f64; 3]; 3]>,
 }
 
 #[derive(Debug, Serialize)]
@@ -265,6 +271,7 @@ pub fn model_json(p: &Posterior) -> ModelJson {
             damping: j.kinodynamics.as_ref().filter(|_| j.map_type.movable()).map(|k| estimate(&k.damping)),
             friction: j.kinodynamics.as_ref().filter(|_| j.map_type.movable()).map(|k| estimate(&k.friction)),
             mass: j.kinodynamics.as_ref().filter(|_| j.map_type.movable()).map(|k| estimate(&k.mass)),
+            log_correlation: j.kinodynamics.as_ref().filter(|_| j.map_type.movable()).map(|k| [0, 1, 2].map(|r| [0, 1, 2].map(|c| k.log_correlation[(r, c)]))),
         })
         .collect();
     ModelJson { inference: "svi".into(), runtime_s: p.runtime_s, elbo: p.elbo, iterations: p.iterations, joints, sampler: None }
@@ -332,11 +339,16 @@ pub struct PredictedPartJson {
     pub lower: Vec<[f64; 3]>,
     pub upper: Vec<[f64; 3]>,
     pub band_radius_m: Vec<f64>,
+    /// The draws' mean centre of mass (beyond the contract; `com` without draws): the prediction
+    /// of least expected squared error ([`crate::prediction::PartPrediction::mean`]).
+    pub mean: Vec<[f64; 3]>,
     /// Rotation from the part's reference configuration at the medians, `[x, y, z, w]`.
     pub orientation: Vec<[f64; 4]>,
     pub observed: Vec<Option<[f64; 3]>>,
     pub observed_frames: usize,
     pub mse_m2: Option<f64>,
+    /// `mse_m2` of `mean` (beyond the contract).
+    pub mse_mean_m2: Option<f64>,
     pub coverage_90: Option<f64>,
     pub final_error_m: Option<f64>,
 }
@@ -374,10 +386,12 @@ pub fn prediction_json(model: &str, wrench: &str, pred: &crate::prediction::Pred
                 lower: p.lower.iter().map(v).collect(),
                 upper: p.upper.iter().map(v).collect(),
                 band_radius_m: p.band_radius_m.clone(),
+                mean: p.mean.iter().map(v).collect(),
                 orientation: p.rotation.iter().map(|q| [q.i, q.j, q.k, q.w]).collect(),
                 observed: pred.stamps.iter().map(|&t| scene.observed_com(p.label, t).map(|(y, _)| v(&y))).collect(),
                 observed_frames: s.frames,
                 mse_m2: finite(s.mse_m2),
+                mse_mean_m2: finite(s.mse_mean_m2),
                 coverage_90: finite(s.coverage_90),
                 final_error_m: finite(s.final_error_m),
             })

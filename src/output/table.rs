@@ -129,7 +129,7 @@ pub fn render_prediction(p: &crate::output::json::PredictionJson) -> String {
     let mut s = String::new();
     let horizon = p.stamps.last().map_or(0.0, |t| t - p.from_s);
     let _ = writeln!(s, "bom {} — prediction from {:.3} s over {:.2} s ({} stamps, {} draws)", p.bom_version, p.from_s, horizon, p.stamps.len(), p.draws);
-    let _ = writeln!(s, "  {:>5} {:>12} {:>12} {:>12} {:>10} {:>8}", "part", "moved [m]", "band90 [m]", "RMSE [m]", "final [m]", "cover90");
+    let _ = writeln!(s, "  {:>5} {:>12} {:>12} {:>12} {:>12} {:>10} {:>8}", "part", "moved [m]", "band90 [m]", "RMSE [m]", "RMSE mean", "final [m]", "cover90");
     for q in &p.parts {
         let moved = match (q.com.first(), q.com.last()) {
             (Some(a), Some(b)) => ((b[0] - a[0]).powi(2) + (b[1] - a[1]).powi(2) + (b[2] - a[2]).powi(2)).sqrt(),
@@ -138,11 +138,12 @@ pub fn render_prediction(p: &crate::output::json::PredictionJson) -> String {
         let opt = |x: Option<f64>, w: usize, d: usize| x.map_or(format!("{:>w$}", "-"), |x| format!("{x:>w$.d$}"));
         let _ = writeln!(
             s,
-            "  {:>5} {:>12.4} {:>12.4} {} {} {}",
+            "  {:>5} {:>12.4} {:>12.4} {} {} {} {}",
             q.label,
             moved,
             q.band_radius_m.last().copied().unwrap_or(0.0),
             opt(q.mse_m2.map(f64::sqrt), 12, 4),
+            opt(q.mse_mean_m2.map(f64::sqrt), 12, 4),
             opt(q.final_error_m, 10, 4),
             opt(q.coverage_90, 8, 2)
         );
