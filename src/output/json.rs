@@ -340,7 +340,8 @@ pub struct PredictedPartJson {
     pub upper: Vec<[f64; 3]>,
     pub band_radius_m: Vec<f64>,
     /// The draws' mean centre of mass (beyond the contract; `com` without draws): the prediction
-    /// of least expected squared error ([`crate::prediction::PartPrediction::mean`]).
+    /// of least expected squared error were the draws the posterior's
+    /// ([`crate::prediction::PartPrediction::mean`]).
     pub mean: Vec<[f64; 3]>,
     /// Rotation from the part's reference configuration at the medians, `[x, y, z, w]`.
     pub orientation: Vec<[f64; 4]>,
