@@ -243,7 +243,7 @@ impl PredictiveModel {
                 damping: estimate("damping"),
                 friction: estimate("friction"),
                 mass: estimate("mass"),
-                log_correlation: log_correlation(j.get("log_correlation")).ok_or_else(|| bad(format!("{}: not a 3x3 correlation matrix", field("log_correlation"))))?,
+                log_correlation: read_log_correlation(j.get("log_correlation")).ok_or_else(|| bad(format!("{}: not a 3x3 correlation matrix", field("log_correlation"))))?,
                 effects: adopted(findings.iter().filter(|(p, _, _)| *p == child).map(|(_, k, p)| (*k, p.clone()))),
             });
         }
@@ -550,7 +550,7 @@ fn topological(model: &PredictiveModel) -> Vec<(usize, Option<usize>)> {
 /// A summary's `log_correlation` (rows of a 3x3 matrix): the identity where absent; `None` where
 /// it is not a correlation matrix (not 3x3, not finite, not symmetric with a unit diagonal, or
 /// not positive definite).
-fn log_correlation(v: Option<&serde_json::Value>) -> Option<Matrix3<f64>> {
+fn read_log_correlation(v: Option<&serde_json::Value>) -> Option<Matrix3<f64>> {
     let Some(v) = v.filter(|v| !v.is_null()) else { return Some(Matrix3::identity()) };
     let rows = v.as_array().filter(|r| r.len() == 3)?;
     let mut m = Matrix3::zeros();
@@ -902,7 +902,7 @@ mod tests {
         let median = draw(&PredictiveModel { joints: vec![joint(-0.8)] }, None::<&mut rand_chacha::ChaCha8Rng>);
         assert_eq!((median[0].damping, median[0].friction, median[0].mass), (4.0, 1.0, 0.8));
         // A summary's matrix: absent is the identity; not a correlation matrix is refused.
-        let read = |v: serde_json::Value| log_correlation(Some(&v));
+        let read = |v: serde_json::Value| read_log_correlation(Some(&v));
         assert_eq!(read(serde_json::Value::Null), Some(Matrix3::identity()));
         assert!(read(serde_json::json!([[1.0, 0.5, 0.0], [0.5, 1.0, 0.0], [0.0, 0.0, 1.0]])).is_some());
         assert!(read(serde_json::json!([[1.0, 0.5, 0.0], [0.4, 1.0, 0.0], [0.0, 0.0, 1.0]])).is_none());
