@@ -1746,7 +1746,7 @@ mod tests {
                     .map(|t| {
                         let a = 0.08 * t as f64;
                         let y = Vector3::new(0.9 * a.cos() - 0.002, 0.9 * a.sin(), 0.81);
-                        (t % 3 == 1).then(|| ContactObs { x: Vector3::new(0.9, 0.0, 0.8), obs: PositionObs { y, basis: Matrix3::identity(), var: Vector3::repeat(2.5e-5) } })
+                        (t % 3 == 1).then(|| ContactObs { x: Vector3::new(0.9, 0.0, 0.8), obs: PositionObs { y, basis: Matrix3::identity(), var: Vector3::repeat(2.5e-5) }, firm: false })
                     })
                     .collect(),
                 radius: 0.2,

@@ -45,7 +45,7 @@ use num_dual::DualSVec64;
 
 use crate::model::dynamics::{self, JointInWindow, SubtreeBody};
 use crate::model::effects::EffectSet;
-use crate::model::likelihood::{coordinate_prior, log_likelihood_position, log_likelihood_rotation, window_start_prior, Evidence, WindowEvidence};
+use crate::model::likelihood::{coordinate_prior, log_likelihood_contact, log_likelihood_position, log_likelihood_rotation, window_start_prior, Evidence, WindowEvidence};
 use crate::model::{decode, displacement, mat_mul, tree, Displacement, JointParams, JointType, ModelConfig};
 
 
@@ -175,11 +175,11 @@ fn block_pass_n<const N: usize>(
             ll += log_likelihood_rotation(o, &s.r, p.rot_noise, cfg.student_nu);
         }
         if let Some(cobs) = own_contact {
-            ll += log_likelihood_position(&cobs.obs, &s.apply_const(&cobs.x), D::<N>::from(0.0), cfg.student_nu);
+            ll += log_likelihood_contact(cobs, &s.apply_const(&cobs.x), cfg.student_nu);
         }
         for mb in subtree {
             if let (Some(z), Some(cobs)) = (&mb.contact[t], ev.parts[mb.m].contact_at(t)) {
-                ll += log_likelihood_position(&cobs.obs, &s.apply_const(z), D::<N>::from(0.0), cfg.student_nu);
+                ll += log_likelihood_contact(cobs, &s.apply_const(z), cfg.student_nu);
             }
             if let Some(o) = &ev.parts[mb.m].obs[t] {
                 ll += log_likelihood_position(o, &s.apply_const(&mb.z[t]), D::<N>::from(mb.sigma), cfg.student_nu);

@@ -57,11 +57,14 @@ impl RotationObs {
 /// `contact_observations`); `obs.y` is where the contact is at this grid frame
 /// \[m\], fixed frame, with isotropic variance `contact_sd_m^2`. The likelihood is eq. 2's for
 /// this point, Student-t like the centre of mass's ([`log_likelihood_position`], no inferred
-/// noise added).
+/// noise added), or with `firm` Gaussian along the push ([`log_likelihood_contact`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ContactObs {
     pub x: Vector3<f64>,
+    /// With `firm`, `obs.basis`'s first column is the force's direction at this frame.
     pub obs: PositionObs,
+    /// Gaussian along the push, Student-t across it ([`Grid::contact_firm`]).
+    pub firm: bool,
 }
 
 /// One part's observations on the grid.
@@ -128,7 +131,7 @@ impl PartSeries {
         }
         if let Some(co) = self.contact_at(t) {
             let x = disp.apply(&co.x);
-            *ll += log_likelihood_position(&co.obs, &moved.map_or(x, |d| d.apply(&x)), 0.0, nu);
+            *ll += log_likelihood_contact(co, &moved.map_or(x, |d| d.apply(&x)), nu);
         }
     }
 }
@@ -175,6 +178,8 @@ pub struct Grid {
     /// likelihood took for outliers (issue 24, class 1), while the hand's own track said where the
     /// drawer's front went in every one of them.
     pub contact_sd_m: f64,
+    /// [`ContactObs::firm`] for every contact observation (`model.contact_firm`).
+    pub contact_firm: bool,
     /// The least force \[N\] at which the hand counts as touching the part (the window's closing
     /// threshold, `windows.force_close_n`): while the force ramps up and after release the contact
     /// frame need not be on the part.
@@ -455,8 +460,10 @@ impl Evidence {
 /// ends the window's observations: the hand is not on this part.
 fn contact_observations(part: &mut PartSeries, points: &[Vector3<f64>], win: &WindowEvidence, grid: &Grid) {
     let var = Vector3::repeat(grid.contact_sd_m * grid.contact_sd_m);
-    // The runs of pushing grid frames with a finite contact point: one push each.
-    let mut runs: Vec<Vec<(usize, Vector3<f64>)>> = vec![Vec::new()];
+    // The runs of pushing grid frames with a finite contact point: one push each; per frame the
+    // grid frame, the contact point and the force.
+    type Run = Vec<(usize, Vector3<f64>, Vector3<f64>)>;
+    let mut runs: Vec<Run> = vec![Vec::new()];
     for (k, &f) in win.frames.iter().enumerate() {
         let step = win.frame_substep[k];
         let (force, point) = (win.force.get(step), win.point.get(step));
@@ -467,12 +474,12 @@ fn contact_observations(part: &mut PartSeries, points: &[Vector3<f64>], win: &Wi
             runs.push(Vec::new());
             continue;
         }
-        runs.last_mut().expect("one run at least").push((f, *point));
+        runs.last_mut().expect("one run at least").push((f, *point, *force));
     }
     for run in runs {
-        let Some(&(_, y0)) = run.first() else { continue };
-        let carry = |&(f, y): &(usize, Vector3<f64>)| part.disp[f].map(|pose| (pose.inverse() * nalgebra::Point3::from(y)).coords);
-        let still: Vec<Vector3<f64>> = run.iter().take_while(|(_, y)| (y - y0).norm() < grid.contact_sd_m).filter_map(carry).collect();
+        let Some(&(_, y0, _)) = run.first() else { continue };
+        let carry = |&(f, y, _): &(usize, Vector3<f64>, Vector3<f64>)| part.disp[f].map(|pose| (pose.inverse() * nalgebra::Point3::from(y)).coords);
+        let still: Vec<Vector3<f64>> = run.iter().take_while(|(_, y, _)| (y - y0).norm() < grid.contact_sd_m).filter_map(carry).collect();
         let (x, from) = if still.len() >= 2 {
             (Vector3::from_fn(|c, _| Data::new(still.iter().map(|u| u[c]).collect::<Vec<f64>>()).median()), 0)
         } else {
@@ -483,8 +490,16 @@ fn contact_observations(part: &mut PartSeries, points: &[Vector3<f64>], win: &Wi
             tracing::debug!("part {}: a push's contact is {CONTACT_REACH_M} m or more from its points; not observed", part.label);
             return;
         }
-        for &(f, y) in &run[from..] {
-            part.contact[f] = Some(ContactObs { x, obs: PositionObs { y, basis: Matrix3::identity(), var } });
+        for &(f, y, force) in &run[from..] {
+            // The force's direction first (a pushing frame's force is at least `contact_force_n`).
+            let basis = match force.try_normalize(1e-12) {
+                Some(n) if grid.contact_firm => {
+                    let t1 = n.cross(&if n.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() }).normalize();
+                    Matrix3::from_columns(&[n, t1, n.cross(&t1)])
+                }
+                _ => Matrix3::identity(),
+            };
+            part.contact[f] = Some(ContactObs { x, obs: PositionObs { y, basis, var }, firm: grid.contact_firm });
         }
     }
 }
@@ -629,6 +644,39 @@ pub fn log_likelihood_position<T: Real>(o: &PositionObs, x: &Vector3<T>, sigma: 
     log_student(m2, hld, 3, nu)
 }
 
+/// Log-likelihood of the hand's contact point `co` given where the part's touched material point
+/// is, `x` \[m\], fixed frame. Without `co.firm` it is [`log_likelihood_position`] (Student-t,
+/// no inferred noise). With it, the displacement along the push (`co.obs.basis`'s first column,
+/// the force's direction) is Gaussian and the two across it a bivariate Student-t with `nu`
+/// degrees of freedom: the hand may slip along the surface it pushes (and where it touches is
+/// placed by perception's poses, which err), but it moves into the surface only as far as the
+/// surface moves, so a hand that advances along its force while the clouds say the part stays
+/// is evidence that the part moved, not an outlier (the arm's kinematics place the hand to
+/// millimetres; perception can miss a motion along directions the part's visible surface leaves
+/// loose, a drawer's sides sliding along themselves). With `nu` not finite both are Gaussian
+/// and the two forms agree.
+#[inline]
+pub fn log_likelihood_contact<T: Real>(co: &ContactObs, x: &Vector3<T>, nu: f64) -> T {
+    let o = &co.obs;
+    if !co.firm {
+        return log_likelihood_position(o, x, c(0.0), nu);
+    }
+    let d = Vector3::new(c::<T>(o.y.x) - x.x, c::<T>(o.y.y) - x.y, c::<T>(o.y.z) - x.z);
+    let project = |k: usize| {
+        let b = o.basis.column(k);
+        d.x * b.x + d.y * b.y + d.z * b.z
+    };
+    let along = project(0);
+    let gauss = log_student(along * along / o.var[0], c::<T>(0.5 * o.var[0].ln()), 1, f64::INFINITY);
+    let (mut m2, mut hld) = (c::<T>(0.0), c::<T>(0.0));
+    for k in 1..3 {
+        let dk = project(k);
+        m2 += dk * dk / o.var[k];
+        hld += c::<T>(0.5 * o.var[k].ln());
+    }
+    gauss + log_student(m2, hld, 2, nu)
+}
+
 /// The 98th percentile of the distances of `points` from `centre` \[m\]; 0 for no points.
 fn reach(points: &[Vector3<f64>], centre: &Vector3<f64>) -> f64 {
     let mut d: Vec<f64> = points.iter().map(|p| (p - centre).norm()).filter(|x| x.is_finite()).collect();
@@ -749,9 +797,63 @@ pub fn coordinate_prior(ev: &Evidence, m: &[f64], s: &[f64], vm: f64, vs: f64, c
 
 #[cfg(test)]
 mod tests {
-    use super::{contact_observations, hand_off, longest_gap, window_start_prior, Grid, PartSeries, WindowEvidence};
+    use super::{contact_observations, hand_off, log_likelihood_contact, log_likelihood_position, longest_gap, window_start_prior, ContactObs, Grid, PartSeries, WindowEvidence};
     use crate::model::ModelConfig;
     use nalgebra::{Isometry3, Matrix3, Translation3, UnitQuaternion, Vector3};
+
+    /// A part of `k` grid frames, nothing observed, with perception's poses `disp`.
+    fn unobserved_part(k: usize, disp: Vec<Option<Isometry3<f64>>>) -> PartSeries {
+        PartSeries {
+            label: 2,
+            com0: Vector3::zeros(),
+            obs: vec![None; k],
+            rot: vec![None; k],
+            disp,
+            contact: vec![None; k],
+            radius: 0.1,
+            reach: 0.1,
+            unit_inertia: Matrix3::identity(),
+            volume: 0.0,
+            weight_offset: Vector3::zeros(),
+        }
+    }
+
+    /// A window over every grid frame of a push on part 0, one integration step per frame: the
+    /// force and the contact point at each.
+    fn pushed_window(force: Vec<Vector3<f64>>, point: Vec<Vector3<f64>>) -> WindowEvidence {
+        let k = force.len();
+        WindowEvidence {
+            frames: (0..k).collect(),
+            rest: vec![],
+            rest_before: vec![],
+            frame_substep: (0..k).collect(),
+            pushed: Some(0),
+            continues: false,
+            hand_off: false,
+            h: 0.01,
+            force,
+            torque: vec![Vector3::zeros(); k],
+            point,
+        }
+    }
+
+    /// One integration step per grid frame, no rests; the contact at `contact_sd_m`.
+    fn contact_grid(contact_sd_m: f64, contact_firm: bool) -> Grid {
+        Grid {
+            min_dt_s: 0.0,
+            min_frames: 2,
+            max_frames: 100,
+            rest_after_s: 0.0,
+            rest_before_s: 0.0,
+            max_unobserved_s: 5.0,
+            step_s: 0.01,
+            contact_sd_m,
+            contact_firm,
+            contact_force_n: 0.5,
+            contact_range_m: 0.01,
+            voxel_m: 0.005,
+        }
+    }
 
     /// A push is one run of frames at or above the contact force; a frame below the force ends
     /// it. A push that moves the hand at once: its first frame with a pose of the part anchors
@@ -767,49 +869,13 @@ mod tests {
         let pose = |t: usize| {
             Isometry3::from_parts(Translation3::new(0.01 * t as f64, 0.0, 0.0), UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.1 * t as f64))
         };
-        let mut part = PartSeries {
-            label: 2,
-            com0: Vector3::zeros(),
-            obs: vec![None; k],
-            rot: vec![None; k],
-            disp: (0..k).map(|t| (t != 1).then(|| pose(t))).collect(),
-            contact: vec![None; k],
-            radius: 0.1,
-            reach: 0.1,
-            unit_inertia: Matrix3::identity(),
-            volume: 0.0,
-            weight_offset: Vector3::zeros(),
-        };
+        let mut part = unobserved_part(k, (0..k).map(|t| (t != 1).then(|| pose(t))).collect());
         let material = Vector3::new(0.3, 0.05, 0.1);
         let at = |t: usize| pose(t) * nalgebra::Point3::from(material);
         // One integration step per frame; force below 0.5 N at frames 0 and 5.
         let magnitude = [0.2, 2.0, 2.0, 2.0, 2.0, 0.1, 3.0, 3.0];
-        let mut win = WindowEvidence {
-            frames: (0..k).collect(),
-            rest: vec![],
-            rest_before: vec![],
-            frame_substep: (0..k).collect(),
-            pushed: Some(0),
-            continues: false,
-            hand_off: false,
-            h: 0.01,
-            force: magnitude.iter().map(|&f| Vector3::new(f, 0.0, 0.0)).collect(),
-            torque: vec![Vector3::zeros(); k],
-            point: (0..k).map(|t| at(t).coords).collect(),
-        };
-        let grid = Grid {
-            min_dt_s: 0.0,
-            min_frames: 2,
-            max_frames: 100,
-            rest_after_s: 0.0,
-            rest_before_s: 0.0,
-            max_unobserved_s: 5.0,
-            step_s: 0.01,
-            contact_sd_m: 0.004,
-            contact_force_n: 0.5,
-            contact_range_m: 0.01,
-            voxel_m: 0.005,
-        };
+        let mut win = pushed_window(magnitude.iter().map(|&f| Vector3::new(f, 0.0, 0.0)).collect(), (0..k).map(|t| at(t).coords).collect());
+        let grid = contact_grid(0.004, false);
         let near = [Vector3::new(0.3, 0.0, 0.1), Vector3::new(2.0, 0.0, 0.0)];
         // Whether the hand is on the part: judged at frame 2, the first pushed frame it is seen in.
         assert!(!hand_off(&part, &near, &win, &grid), "5 cm from a point of the part");
@@ -842,6 +908,44 @@ mod tests {
             let c = part.contact_at(t).unwrap();
             assert!((c.x - material).norm() < 1e-12, "frame {t}: material point {:?}", c.x);
         }
+    }
+
+    /// A firm contact ([`log_likelihood_contact`]): with the basis `contact_observations` builds
+    /// from the force, a hand 10 cm ahead of the material point along its force costs the
+    /// Gaussian's 200 nats (20 sds), 10 cm across the force the Student-t's few nats, and without
+    /// `firm` both are the centre of mass's Student-t; with Gaussian noise (`nu` 0) the two forms
+    /// are one density. Its derivative through dual numbers is that of its value.
+    #[test]
+    fn a_firm_contact_is_gaussian_along_the_push_only() {
+        let sd = 0.005;
+        let force = Vector3::new(1.0, 2.0, -0.5);
+        let mut part = unobserved_part(3, vec![Some(Isometry3::identity()); 3]);
+        let win = pushed_window(vec![force; 3], vec![Vector3::new(0.3, 0.0, 0.1); 3]);
+        let grid = contact_grid(sd, true);
+        contact_observations(&mut part, &[Vector3::new(0.3, 0.0, 0.1)], &win, &grid);
+        let co: ContactObs = *part.contact_at(1).expect("the still push observes every frame");
+        assert!(co.firm);
+        let n = force.normalize();
+        assert!((co.obs.basis.column(0) - n).norm() < 1e-12, "the force's direction first");
+        assert!((co.obs.basis.transpose() * co.obs.basis - Matrix3::identity()).norm() < 1e-12, "orthonormal");
+        let across = co.obs.basis.column(1).into_owned();
+        let loose = ContactObs { firm: false, ..co };
+        let at = |x: Vector3<f64>, c: &ContactObs, nu: f64| log_likelihood_contact(c, &x, nu);
+        let y = co.obs.y;
+        let (nu, d) = (4.0, 0.1);
+        let drop = |dir: Vector3<f64>, c: &ContactObs| at(y, c, nu) - at(y - dir * d, c, nu);
+        let gauss_drop = 0.5 * (d / sd).powi(2);
+        assert!((drop(n, &co) - gauss_drop).abs() < 1e-9, "along the push: {} nats", drop(n, &co));
+        assert!(drop(across, &co) > 1.0 && drop(across, &co) < 20.0, "across the push: {} nats", drop(across, &co));
+        assert!(drop(n, &loose) < 20.0, "not firm: Student-t along the push too ({} nats)", drop(n, &loose));
+        let off = y + Vector3::new(0.01, -0.02, 0.03);
+        assert_eq!(at(off, &loose, nu), log_likelihood_position(&loose.obs, &off, 0.0, nu));
+        assert!((at(off, &co, 0.0) - at(off, &loose, 0.0)).abs() < 1e-9, "Gaussian noise: one density");
+        // The derivative along x through a dual number against central differences.
+        let dual = log_likelihood_contact(&co, &Vector3::new(num_dual::Dual64::from(off.x).derivative(), off.y.into(), off.z.into()), nu);
+        let h = 1e-6;
+        let fd = (at(off + Vector3::x() * h, &co, nu) - at(off - Vector3::x() * h, &co, nu)) / (2.0 * h);
+        assert!((dual.eps - fd).abs() < 1e-5 * fd.abs().max(1.0), "derivative {} against {fd}", dual.eps);
     }
 
     /// The window-start mixture: with `s = 0` it is the log of the mixture density, without the

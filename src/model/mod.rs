@@ -109,6 +109,13 @@ pub struct ModelConfig {
     /// joint types, parents and the layouts' agreement over the three seeds at a cost in IdE
     /// (README "Generalization", stop 98); with stop 95's one-frame anchor it lost calls there.
     pub contact_sd_m: f64,
+    /// Dynamic mode: whether the contact point is Gaussian along the push and Student-t across it
+    /// ([`likelihood::log_likelihood_contact`]); false: Student-t in every direction, like a
+    /// centre of mass. Why: a hand may slip along the surface it pushes, but it cannot move
+    /// into that surface unless the surface moves with it, so its displacement along the force
+    /// is no outlier. Perception, in contrast, can miss a part's motion along directions its
+    /// visible surface leaves loose (a drawer's sides and bottom slide along themselves).
+    pub contact_firm: bool,
     /// Median and log-sd of the log-normal prior on the rotation noise \[rad\].
     pub rotation_noise_median_rad: f64,
     pub rotation_noise_log_sd: f64,
@@ -171,6 +178,7 @@ impl Default for ModelConfig {
             noise_log_sd: 1.0,
             student_nu: 4.0,
             contact_sd_m: 0.005,
+            contact_firm: false,
             rotation_noise_median_rad: 0.02,
             rotation_noise_log_sd: 1.0,
             axis_point_sd_m: 0.2,

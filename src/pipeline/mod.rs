@@ -350,6 +350,7 @@ pub fn grid(cfg: &Config) -> Grid {
         max_unobserved_s: cfg.windows.max_unobserved_s,
         step_s: cfg.model.dynamics.step_s,
         contact_sd_m: cfg.model.contact_sd_m,
+        contact_firm: cfg.model.contact_firm,
         contact_force_n: cfg.windows.force_close_n,
         contact_range_m: cfg.perception.contact_range_m,
         voxel_m: cfg.perception.voxel_m,
