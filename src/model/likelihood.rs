@@ -63,7 +63,8 @@ pub struct ContactObs {
     pub x: Vector3<f64>,
     /// With `firm`, `obs.basis`'s first column is the force's direction at this frame.
     pub obs: PositionObs,
-    /// Gaussian along the push, Student-t across it ([`Grid::contact_firm`]).
+    /// Gaussian along the push, Student-t across it ([`Grid::contact_firm`], where the frame's
+    /// force has a direction).
     pub firm: bool,
 }
 
@@ -491,15 +492,15 @@ fn contact_observations(part: &mut PartSeries, points: &[Vector3<f64>], win: &Wi
             return;
         }
         for &(f, y, force) in &run[from..] {
-            // The force's direction first (a pushing frame's force is at least `contact_force_n`).
-            let basis = match force.try_normalize(1e-12) {
+            // The force's direction first; a force without one (`contact_force_n` 0) is not firm.
+            let (basis, firm) = match force.try_normalize(1e-12) {
                 Some(n) if grid.contact_firm => {
                     let t1 = n.cross(&if n.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() }).normalize();
-                    Matrix3::from_columns(&[n, t1, n.cross(&t1)])
+                    (Matrix3::from_columns(&[n, t1, n.cross(&t1)]), true)
                 }
-                _ => Matrix3::identity(),
+                _ => (Matrix3::identity(), false),
             };
-            part.contact[f] = Some(ContactObs { x, obs: PositionObs { y, basis, var }, firm: grid.contact_firm });
+            part.contact[f] = Some(ContactObs { x, obs: PositionObs { y, basis, var }, firm });
         }
     }
 }
@@ -653,8 +654,8 @@ pub fn log_likelihood_position<T: Real>(o: &PositionObs, x: &Vector3<T>, sigma: 
 /// surface moves, so a hand that advances along its force while the clouds say the part stays
 /// is evidence that the part moved, not an outlier (the arm's kinematics place the hand to
 /// millimetres; perception can miss a motion along directions the part's visible surface leaves
-/// loose, a drawer's sides sliding along themselves). With `nu` not finite both are Gaussian
-/// and the two forms agree.
+/// loose, a drawer's sides sliding along themselves). With Gaussian noise (`nu` 0, as
+/// `model.student_nu` 0 sets) the two forms are one density.
 #[inline]
 pub fn log_likelihood_contact<T: Real>(co: &ContactObs, x: &Vector3<T>, nu: f64) -> T {
     let o = &co.obs;
